@@ -1,0 +1,7 @@
+"""TABX in JAX: a vectorised, recompilation-free battle simulator for MARL and UED.
+
+Main entry points: `tabx.env.TabxEnv` (array API), `tabx.params` (EnvConfig / EnvParams levels),
+`tabx.scenarios` (scenario files), `tabx.marl` (JaxMARL-compatible adapter).
+"""
+
+__version__ = "0.1.0"

@@ -1,0 +1,57 @@
+"""The `tabx` command line: one entry point, sub-commands registered by the modules that own them.
+
+Each registrar module exposes `add_parser(subparsers)`, which adds its sub-command and sets
+`func` on its parser; `func(args) -> int` is the exit code. Errors the user can fix (a bad file,
+a bad value) are raised as `UserError` and printed without a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+REGISTRARS = (
+    "tabx.scenarios.cli",  # tabx scenarios list|show|validate
+    "tabx.rollout",  # tabx rollout
+    "tabx.bench",  # tabx bench env
+    "level_buffer.cli",  # tabx buffer ...
+)
+
+
+class UserError(Exception):
+    """An error in the user's input (file, option, value): printed as one clear line."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="tabx", description="TABX battle simulator, MARL learners and UED tools.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name in REGISTRARS:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as err:
+            # A registrar that is not part of this install yet; anything else is a real error.
+            if err.name is not None and name.startswith(err.name):
+                continue
+            raise
+        module.add_parser(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except UserError as err:
+        print(f"tabx {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
