@@ -4,4 +4,8 @@ Main entry points: `tabx.env.TabxEnv` (array API), `tabx.params` (EnvConfig / En
 `tabx.scenarios` (scenario files), `tabx.marl` (JaxMARL-compatible adapter).
 """
 
+from tabx import _xla_flags
+
+_xla_flags.apply()
+
 __version__ = "0.1.0"

@@ -170,7 +170,8 @@ def heuristic_params(ally: str | dict = "medium", enemy: str | dict = "medium") 
 def physics_params(preset: str = "default", **overrides: float) -> PhysicsParams:
     """Physics constants from a preset name, with optional per-field overrides."""
     if preset not in PHYSICS_PRESETS:
-        raise ValueError(f"unknown physics preset {preset!r}; expected one of {sorted(PHYSICS_PRESETS)}")
+        raise ValueError(
+            f"unknown physics preset {preset!r}; expected one of {sorted(PHYSICS_PRESETS)}")
     values: dict[str, Any] = dict(
         boundary_damage_rate=C.BOUNDARY_DAMAGE_RATE, turn_rate=C.TURN_RATE,
         arena_size=(C.ARENA_WIDTH, C.ARENA_HEIGHT), **PHYSICS_PRESETS[preset])
@@ -229,7 +230,8 @@ def make_level(
     if len(allies) > config.max_allies:
         raise ValueError(f"{len(allies)} allies exceed EnvConfig.max_allies={config.max_allies}")
     if len(enemies) > config.max_enemies:
-        raise ValueError(f"{len(enemies)} enemies exceed EnvConfig.max_enemies={config.max_enemies}")
+        raise ValueError(
+            f"{len(enemies)} enemies exceed EnvConfig.max_enemies={config.max_enemies}")
     if len(zones) > config.max_zones:
         raise ValueError(f"{len(zones)} zones exceed EnvConfig.max_zones={config.max_zones}")
     u = empty_units(config)
@@ -320,5 +322,6 @@ def levels_equal(a: EnvParams, b: EnvParams, atol: float = 0.0) -> bool:
 def level_config(level: EnvParams, max_steps: int = C.DEFAULT_MAX_STEPS) -> EnvConfig:
     """The EnvConfig an (unbatched) level was padded for, read from its team layout."""
     team = np.asarray(level.units.team)
-    return EnvConfig(max_allies=int((team == C.ALLY).sum()), max_enemies=int((team == C.ENEMY).sum()),
+    return EnvConfig(max_allies=int((team == C.ALLY).sum()),
+                     max_enemies=int((team == C.ENEMY).sum()),
                      max_zones=int(np.shape(level.zones.zone_type)[-1]), max_steps=max_steps)

@@ -1,0 +1,164 @@
+"""`tabx bench env`: simulator throughput and compile time.
+
+Protocol (issue #2): random legal actions for every unit slot; `jit` of a 128-step `lax.scan`
+over `vmap(step_autoreset)`; the batch of levels is a jit *argument* (never a baked-in
+constant); one warm-up call, then 3 timed calls (median, `block_until_ready`). Env steps/s =
+num_envs x steps / seconds, compile excluded; compile time (lower + compile) reported
+separately. The observation is carried through the scan, so it is computed every step, as a
+policy would need it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import sys
+import time
+from dataclasses import asdict, dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from tabx.env import TabxEnv, random_legal_actions
+from tabx.params import EnvConfig, EnvParams, make_level, repeat_level
+
+TEAM_SIZES = (3, 5, 10)
+NUM_ENVS = (1, 16, 128, 1024)
+UNIT_CYCLE = ("farmer", "archer", "theking", "healer", "assassin", "deadeye", "cannon",
+              "paladin", "mammoth")
+
+
+@dataclass
+class BenchResult:
+    team_size: int
+    zones: int
+    num_envs: int
+    steps: int
+    compile_s: float
+    run_s: float
+    steps_per_s: float
+
+
+def bench_level(team_size: int, num_zones: int) -> tuple[EnvConfig, EnvParams]:
+    """A team_size v team_size battle in lines facing each other, with num_zones zones."""
+    config = EnvConfig(max_allies=team_size, max_enemies=team_size, max_zones=max(num_zones, 1))
+    ys = np.linspace(-30, 30, team_size) if team_size > 1 else np.zeros(1)
+    allies = [dict(unit=UNIT_CYCLE[i % 9], position=(-12.0, float(y)), heading=0.0)
+              for i, y in enumerate(ys)]
+    enemies = [dict(unit=UNIT_CYCLE[(i + 4) % 9], position=(12.0, float(y)), heading=np.pi)
+               for i, y in enumerate(ys)]
+    kinds = ("lava", "bush", "swamp")
+    zones = [dict(type=kinds[i % 3], centre=(-40.0 + 16.0 * i, 10.0 * (-1) ** i),
+                  semi_axes=(6.0, 5.0), effect=(10.0, 0.0, 0.4)[i % 3])
+             for i in range(num_zones)]
+    return config, make_level(config, allies, enemies, zones)
+
+
+def make_rollout(env: TabxEnv, steps: int):
+    """jit(levels, key) -> final carry of a `steps`-long random-action scan over all envs."""
+
+    def rollout(levels: EnvParams, key: jax.Array):
+        num_envs = levels.reward_mode.shape[0]
+        obs, states = jax.vmap(env.reset)(jax.random.split(key, num_envs), levels)
+
+        def body(carry, _):
+            key, states, obs, total = carry
+            key, k_act = jax.random.split(key)
+            masks = jax.vmap(env.action_mask)(states, levels)
+            actions = random_legal_actions(k_act, masks)
+            obs, states, reward, done, _ = jax.vmap(env.step_autoreset)(
+                jax.random.split(key, num_envs), states, actions, levels)
+            return (key, states, obs, total + reward.sum() + done.sum()), None
+
+        carry, _ = jax.lax.scan(body, (key, states, obs, jnp.zeros(())), None, length=steps)
+        return carry
+
+    return jax.jit(rollout)
+
+
+def run_one(team_size: int, num_zones: int, num_envs: int, steps: int = 128,
+            repeats: int = 3) -> BenchResult:
+    config, level = bench_level(team_size, num_zones)
+    env = TabxEnv(config)
+    levels = repeat_level(level, num_envs)
+    levels = jax.tree.map(lambda x: jnp.array(x), levels)  # materialise: a real argument
+    key = jax.random.key(0)
+    fn = make_rollout(env, steps)
+    t0 = time.perf_counter()
+    compiled = fn.lower(levels, key).compile()
+    compile_s = time.perf_counter() - t0
+    jax.block_until_ready(compiled(levels, key))  # warm-up
+    times = []
+    for i in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(compiled(levels, jax.random.key(i + 1)))
+        times.append(time.perf_counter() - t0)
+    run_s = statistics.median(times)
+    return BenchResult(team_size, num_zones, num_envs, steps, compile_s, run_s,
+                       num_envs * steps / run_s)
+
+
+def machine_summary() -> str:
+    return (f"{platform.node()} {platform.machine()}, {jax.device_count()}x "
+            f"{jax.devices()[0].device_kind}, jax {jax.__version__}, python "
+            f"{platform.python_version()}")
+
+
+def bench_env(args: argparse.Namespace) -> int:
+    print(f"# tabx bench env on {machine_summary()}", flush=True)
+    print(f"{'units':>6} {'zones':>5} {'envs':>6} {'compile s':>9} {'run s':>8} "
+          f"{'steps/s':>12}", flush=True)
+    results = []
+    configs = [(t, z, n) for t in args.team_sizes for z in args.zones for n in args.num_envs]
+    t_start = time.perf_counter()
+    for i, (team, zones, envs) in enumerate(configs):
+        r = run_one(team, zones, envs, steps=args.steps, repeats=args.repeats)
+        results.append(r)
+        elapsed = time.perf_counter() - t_start
+        eta = elapsed / (i + 1) * (len(configs) - i - 1)
+        print(f"{f'{team}v{team}':>6} {zones:>5} {envs:>6} {r.compile_s:>9.2f} {r.run_s:>8.3f} "
+              f"{r.steps_per_s:>12,.0f}   [{i + 1}/{len(configs)}, eta {eta:.0f}s]", flush=True)
+    if args.json:
+        from tabx.files import atomic_write_text
+        lines = "".join(json.dumps({**asdict(r), "machine": machine_summary()}) + "\n"
+                        for r in results)
+        atomic_write_text(args.json, lines)
+        print(f"wrote {args.json}")
+    return 0
+
+
+def _positive_ints(text: str) -> list[int]:
+    try:
+        values = [int(v) for v in text.split(",") if v]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated integers, got {text!r}") from None
+    if not values or any(v < 0 for v in values):
+        raise argparse.ArgumentTypeError(f"expected non-negative integers, got {text!r}")
+    return values
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    bench = subparsers.add_parser("bench", help="benchmarks (throughput, compile time)")
+    which = bench.add_subparsers(dest="bench_command", metavar="BENCH")
+    which.required = True
+    env = which.add_parser("env", help="simulator steps/s with random legal actions")
+    env.add_argument("--team-sizes", type=_positive_ints, default=list(TEAM_SIZES),
+                     help="comma-separated units per team (default 3,5,10)")
+    env.add_argument("--zones", type=_positive_ints, default=[0, 6],
+                     help="comma-separated zone counts (default 0,6)")
+    env.add_argument("--num-envs", type=_positive_ints, default=list(NUM_ENVS),
+                     help="comma-separated env counts (default 1,16,128,1024)")
+    env.add_argument("--steps", type=int, default=128, help="scan length (default 128)")
+    env.add_argument("--repeats", type=int, default=3, help="timed calls (median; default 3)")
+    env.add_argument("--json", help="also write results as JSON lines to this file")
+    env.set_defaults(func=bench_env)
+
+
+if __name__ == "__main__":
+    from tabx.cli import main
+
+    sys.exit(main(["bench", "env", *sys.argv[1:]]))

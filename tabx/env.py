@@ -1,0 +1,229 @@
+"""`TabxEnv`: the TABX battle as pure functions over (EnvState, EnvParams), array API.
+
+One step, in order (TABX_REFERENCE.md section 4, with the fixes listed in docs/differences.md):
+1. motion: Euler with the velocity set by the previous action, wall damage and clipping,
+   one simultaneous collision pass, clipping again;
+2. actions of every unit slot: moves set the next velocity, turns rotate now, ATTACK hits the
+   nearest attackable unit chosen at the end of the previous step (what the observation showed);
+3. zones: lava damage, swamp speed for the next move;
+4. all health changes summed and clamped at once; units at 0 health die (for good);
+5. geometry for the next step: field of view, bush rules, hurtboxes, nearest targets;
+6. team health ratios, reward, termination on the step the last unit of a team dies,
+   truncation at `max_steps`.
+
+Only `EnvConfig` is static: every level with the same config runs through the same compiled
+step. A finished episode is frozen: stepping it again changes nothing and pays nothing.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from tabx import constants as C
+from tabx.combat import attack_targets, resolve_attacks
+from tabx.geometry import facing, field_of_view, in_ellipses, pairwise_offsets
+from tabx.observe import action_mask, cooldown_ready, observe, world_state
+from tabx.params import EnvConfig, EnvParams
+from tabx.physics import integrate, resolve_collisions, wall_contact
+from tabx.reward import dense_reward, team_hp_ratio, winner_mask
+from tabx.state import EnvState
+from tabx.zones import bush_visibility, lava_damage, swamp_speed
+
+_ACTION_TABLE = jnp.asarray(C.ACTION_TABLE, jnp.float32)
+
+Info = dict[str, jax.Array]
+
+
+class TabxEnv:
+    """The battle simulator for one static `EnvConfig`; vmap its methods over envs."""
+
+    def __init__(self, config: EnvConfig):
+        self.config = config
+
+    # --- public API --------------------------------------------------------------------------
+
+    @property
+    def num_units(self) -> int:
+        return self.config.num_units
+
+    @property
+    def num_actions(self) -> int:
+        return C.NUM_ACTIONS
+
+    def reset(self, key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
+        """(obs (N, obs_size), state) at the start of the level. Deterministic: key unused."""
+        del key
+        state = self.initial_state(params)
+        return self.observe(state, params), state
+
+    def step(self, key: jax.Array, state: EnvState, actions: jax.Array, params: EnvParams
+             ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, Info]:
+        """One step for every unit slot. actions: int (N,). Returns (obs, state, reward (2,)
+        per team, done, info). Stepping a finished episode returns it unchanged, reward 0."""
+        del key
+        advanced, interacted, inside, reward, info = self._advance(state, actions, params)
+        new_state = self._refresh_geometry(advanced, params, interacted, inside)
+        frozen = state.done
+        new_state = jax.tree.map(lambda old, new: jnp.where(frozen, old, new), state, new_state)
+        reward = jnp.where(frozen, 0.0, reward)
+        info = jax.tree.map(lambda x: jnp.where(frozen, jnp.zeros_like(x), x), info)
+        return self.observe(new_state, params), new_state, reward, new_state.done, info
+
+    def step_autoreset(self, key: jax.Array, state: EnvState, actions: jax.Array,
+                       params: EnvParams, reset_params: EnvParams | None = None
+                       ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, Info]:
+        """Step; where the episode ends, the returned state (and obs) is the start of
+        `reset_params` (default: the same level). Reward, done and info belong to the step
+        that ended. The geometry is computed once, for whichever state is kept."""
+        del key
+        reset_params = params if reset_params is None else reset_params
+        advanced, interacted, inside, reward, info = self._advance(state, actions, params)
+        done = advanced.done
+        fresh, fresh_inside = self._initial_fields(reset_params)
+        kept = jax.tree.map(lambda new, init: jnp.where(done, init, new), advanced, fresh)
+        kept_params = jax.tree.map(lambda p, r: jnp.where(done, r, p), params, reset_params)
+        new_state = self._refresh_geometry(
+            kept, kept_params, interacted & ~done, jnp.where(done, fresh_inside, inside))
+        return self.observe(new_state, kept_params), new_state, reward, done, info
+
+    def initial_state(self, params: EnvParams) -> EnvState:
+        fields, inside = self._initial_fields(params)
+        return self._refresh_geometry(fields, params, jnp.zeros_like(fields.visible), inside)
+
+    def observe(self, state: EnvState, params: EnvParams) -> jax.Array:
+        return observe(self.config, state, params)
+
+    def world_state(self, state: EnvState, params: EnvParams) -> jax.Array:
+        return world_state(self.config, state, params)
+
+    def action_mask(self, state: EnvState, params: EnvParams) -> jax.Array:
+        return action_mask(state, params)
+
+    # --- internals ---------------------------------------------------------------------------
+
+    def _initial_fields(self, params: EnvParams) -> tuple[EnvState, jax.Array]:
+        """Start-of-episode state with empty geometry, and zone membership."""
+        u, z, ph = params.units, params.zones, params.physics
+        n = self.config.num_units
+        active = u.active.astype(bool)
+        health = jnp.where(active, jnp.clip(u.health, 0.0, u.max_health), 0.0)
+        alive = active & (health > 0)
+        position = wall_contact(u.position, u.radius, ph.arena_size)[0]
+        inside = in_ellipses(position, z.centre, z.semi_axes, z.zone_type)
+        state = EnvState(
+            position=position,
+            velocity=jnp.zeros((n, 2), jnp.float32),
+            heading=jnp.mod(u.heading, 2 * jnp.pi),
+            health=health,
+            alive=alive,
+            # Seconds since the last attack as the first action sees it (the reference starts
+            # at 0 and adds dt before acting): an archer (cooldown 8, dt 0.5) shoots at step 16.
+            cooldown=jnp.clip(jnp.broadcast_to(ph.dt, (n,)), 0.0, u.cooldown),
+            speed=swamp_speed(inside, z.zone_type, z.effect, u.speed),
+            visible=jnp.zeros((n, n), bool),
+            attackable=jnp.zeros((n, n), bool),
+            target=jnp.zeros(n, jnp.int32),
+            has_target=jnp.zeros(n, bool),
+            hp_ratio=team_hp_ratio(health, u.max_health, u.team, active, params.reward_mode),
+            step=jnp.zeros((), jnp.int32),
+            done=jnp.zeros((), bool),
+            won=jnp.zeros(C.NUM_TEAMS, bool),
+        )
+        return state, inside
+
+    def _advance(self, state: EnvState, actions: jax.Array, params: EnvParams
+                 ) -> tuple[EnvState, jax.Array, jax.Array, jax.Array, Info]:
+        """Dynamics of one step, up to but excluding the next step's geometry."""
+        u, z, ph = params.units, params.zones, params.physics
+        dt = ph.dt
+        able = state.alive
+
+        # 1. Motion: last action's velocity, wall, collisions (corpses collide, padding not).
+        position = integrate(state.position, state.velocity, dt)
+        position, touching = wall_contact(position, u.radius, ph.arena_size)
+        wall_loss = jnp.where(touching & able, ph.boundary_damage_rate * u.max_health * dt, 0.0)
+        position, _ = resolve_collisions(position, state.velocity, u.radius, u.mass,
+                                         u.active.astype(bool), ph.restitution, ph.slop,
+                                         ph.percent)
+        position = wall_contact(position, u.radius, ph.arena_size)[0]
+
+        # 2. Actions.
+        action = jnp.clip(actions.astype(jnp.int32), 0, C.NUM_ACTIONS - 1)
+        attacking = (action == C.ATTACK) & cooldown_ready(state.cooldown, u.cooldown) & able
+        attack_loss, hit, interacted = resolve_attacks(attacking, state.has_target,
+                                                       state.target, u.damage)
+        table = _ACTION_TABLE[action]
+        velocity = table[:, :2] * jnp.where(able, state.speed, 0.0)[:, None]
+        turn = table[:, 2] * ph.turn_rate * dt * able
+        heading = jnp.mod(state.heading + turn, 2 * jnp.pi)
+        # A whiffed attack still spends the cooldown (reference behaviour).
+        cooldown = jnp.clip(jnp.where(attacking, 0.0, state.cooldown) + dt, 0.0, u.cooldown)
+
+        # 3. Zones at the new positions.
+        inside = in_ellipses(position, z.centre, z.semi_axes, z.zone_type)
+        lava_loss = jnp.where(able, lava_damage(inside, z.zone_type, z.effect, dt), 0.0)
+        speed = swamp_speed(inside, z.zone_type, z.effect, u.speed)
+
+        # 4. Health: every change of the step at once; the dead stay dead.
+        health = jnp.clip(state.health - wall_loss - attack_loss - lava_loss, 0.0, u.max_health)
+        health = jnp.where(able, health, state.health)
+        alive = able & (health > 0)
+
+        # 6. Outcome.
+        active = u.active.astype(bool)
+        hp_ratio = team_hp_ratio(health, u.max_health, u.team, active, params.reward_mode)
+        reward = dense_reward(hp_ratio, state.hp_ratio)
+        members = u.team[None, :] == jnp.arange(C.NUM_TEAMS)[:, None]  # (2, N)
+        eliminated = jnp.any(~jnp.any(members & alive[None, :], axis=-1))
+        step = state.step + 1
+        truncated = step >= self.config.max_steps
+        done = eliminated | truncated
+        won = winner_mask(hp_ratio) & done
+        terminal = jnp.where(won, self.config.win_reward, self.config.lose_reward)
+        reward = reward + jnp.where(done, terminal, 0.0)
+
+        advanced = state.replace(
+            position=position, velocity=velocity, heading=heading, health=health, alive=alive,
+            cooldown=cooldown, speed=speed, hp_ratio=hp_ratio, step=step, done=done, won=won)
+        info = {
+            "attacking": attacking,
+            "hit": hit,
+            "damage_dealt": jnp.where(hit, u.damage, 0.0),
+            "won": won,
+            "terminated": eliminated,
+            "truncated": truncated & ~eliminated,
+            "dead_units": jnp.sum(members & (active & ~alive)[None, :], -1),
+        }
+        return advanced, interacted, inside, reward, info
+
+    def _refresh_geometry(self, state: EnvState, params: EnvParams, interacted: jax.Array,
+                          inside: jax.Array) -> EnvState:
+        """Visibility, hurtbox reach and nearest targets for the state's positions."""
+        u, z = params.units, params.zones
+        active = u.active.astype(bool)
+        rel = pairwise_offsets(state.position)
+        trig = jax.lax.optimization_barrier(facing(state.heading, u.sight_angle))
+        fov = field_of_view(rel, trig, u.radius) & active[None, :]
+        visible = bush_visibility(fov, inside, z.zone_type, u.team, state.alive, interacted)
+        attackable, target, has_target = attack_targets(
+            rel, trig, u.radius, u.attack_range, u.team, u.heals.astype(bool), state.alive)
+        return state.replace(visible=visible, attackable=attackable, target=target,
+                             has_target=has_target)
+
+
+def make_env(config: EnvConfig) -> TabxEnv:
+    return TabxEnv(config)
+
+
+def random_legal_actions(key: jax.Array, mask: jax.Array) -> jax.Array:
+    """Uniform random legal action per unit slot from a (..., 8) bool mask.
+
+    One uniform draw per unit picks the k-th legal action: 8 times fewer random bits than
+    Gumbel-max sampling, which matters on CPU where threefry dominates a random rollout.
+    Every row must have at least one legal action (IDLE always is).
+    """
+    count = jnp.sum(mask, axis=-1)
+    pick = jnp.floor(jax.random.uniform(key, count.shape) * count).astype(jnp.int32)
+    pick = jnp.minimum(pick, count - 1)
+    return jnp.argmax(jnp.cumsum(mask, axis=-1) > pick[..., None], axis=-1).astype(jnp.int32)

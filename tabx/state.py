@@ -1,0 +1,31 @@
+"""`EnvState`: the dynamic part of one battle (the level, `EnvParams`, stays outside).
+
+Besides positions, health and the like, the state keeps the geometry computed at the end of the
+previous step (visibility, which units each unit can hit, its nearest target). Observations and
+the attack resolution of the next step read exactly this, so an agent's attack hits what its
+observation said it could hit.
+"""
+
+from __future__ import annotations
+
+import jax
+from flax import struct
+
+
+@struct.dataclass
+class EnvState:
+    position: jax.Array  # (N, 2) float32
+    velocity: jax.Array  # (N, 2) float32, set by the last action; applied at the next step
+    heading: jax.Array  # (N,) float32 radians in [0, 2 pi)
+    health: jax.Array  # (N,) float32 in [0, max_health]
+    alive: jax.Array  # (N,) bool; False for padding, and forever once dead
+    cooldown: jax.Array  # (N,) float32 seconds since the last attack, as the next action sees it
+    speed: jax.Array  # (N,) float32 current speed (swamps slow it), used by the next move
+    visible: jax.Array  # (N, N) bool: visible[v, t] = v sees t (field of view + bush rules)
+    attackable: jax.Array  # (N, N) bool: attackable[a, t] = a's attack would reach t now
+    target: jax.Array  # (N,) int32 nearest attackable unit (valid where has_target)
+    has_target: jax.Array  # (N,) bool
+    hp_ratio: jax.Array  # (2,) float32 team health ratio (per the level's reward mode)
+    step: jax.Array  # () int32 steps taken in this episode
+    done: jax.Array  # () bool: the episode has ended (stepping further changes nothing)
+    won: jax.Array  # (2,) bool: which team won (set when done)
