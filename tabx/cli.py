@@ -54,4 +54,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # Re-import so that UserError is the class the sub-commands raise (not __main__.UserError).
+    from tabx.cli import main as _main
+
+    sys.exit(_main())
