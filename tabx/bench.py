@@ -63,6 +63,7 @@ def make_rollout(env: TabxEnv, steps: int):
     def rollout(levels: EnvParams, key: jax.Array):
         num_envs = levels.reward_mode.shape[0]
         obs, states = jax.vmap(env.reset)(jax.random.split(key, num_envs), levels)
+        start_states = states  # auto-reset into the same levels
 
         def body(carry, _):
             key, states, obs, total = carry
@@ -70,7 +71,7 @@ def make_rollout(env: TabxEnv, steps: int):
             masks = jax.vmap(env.action_mask)(states, levels)
             actions = random_legal_actions(k_act, masks)
             obs, states, reward, done, _ = jax.vmap(env.step_autoreset)(
-                jax.random.split(key, num_envs), states, actions, levels)
+                jax.random.split(key, num_envs), states, actions, levels, start_states)
             return (key, states, obs, total + reward.sum() + done.sum()), None
 
         carry, _ = jax.lax.scan(body, (key, states, obs, jnp.zeros(())), None, length=steps)

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 
 from tabx import constants as C
 from tabx.combat import attack_targets, resolve_attacks
-from tabx.geometry import facing, field_of_view, in_ellipses, pairwise_offsets
+from tabx.geometry import facing, field_of_view, in_ellipses, pairwise_offsets, view_trig
 from tabx.observe import action_mask, cooldown_ready, observe, world_state
 from tabx.params import EnvConfig, EnvParams
 from tabx.physics import integrate, resolve_collisions, wall_contact
@@ -71,21 +71,21 @@ class TabxEnv:
         return self.observe(new_state, params), new_state, reward, new_state.done, info
 
     def step_autoreset(self, key: jax.Array, state: EnvState, actions: jax.Array,
-                       params: EnvParams, reset_params: EnvParams | None = None
+                       params: EnvParams, reset_state: EnvState,
+                       reset_params: EnvParams | None = None
                        ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, Info]:
-        """Step; where the episode ends, the returned state (and obs) is the start of
-        `reset_params` (default: the same level). Reward, done and info belong to the step
-        that ended. The geometry is computed once, for whichever state is kept."""
+        """Step; where the episode ends, continue from `reset_state` (the start state of
+        `reset_params`, default the same level, from `initial_state`). Reward, done and info
+        belong to the step that ended; obs and state are the reset ones (JaxMARL semantics).
+        Passing the start state in, rather than recomputing it, makes the reset a select."""
         del key
-        reset_params = params if reset_params is None else reset_params
         advanced, interacted, inside, reward, info = self._advance(state, actions, params)
+        stepped = self._refresh_geometry(advanced, params, interacted, inside)
         done = advanced.done
-        fresh, fresh_inside = self._initial_fields(reset_params)
-        kept = jax.tree.map(lambda new, init: jnp.where(done, init, new), advanced, fresh)
-        kept_params = jax.tree.map(lambda p, r: jnp.where(done, r, p), params, reset_params)
-        new_state = self._refresh_geometry(
-            kept, kept_params, interacted & ~done, jnp.where(done, fresh_inside, inside))
-        return self.observe(new_state, kept_params), new_state, reward, done, info
+        new_state = jax.tree.map(lambda s, r: jnp.where(done, r, s), stepped, reset_state)
+        obs_params = params if reset_params is None else jax.tree.map(
+            lambda p, r: jnp.where(done, r, p), params, reset_params)
+        return self.observe(new_state, obs_params), new_state, reward, done, info
 
     def initial_state(self, params: EnvParams) -> EnvState:
         fields, inside = self._initial_fields(params)
@@ -111,10 +111,14 @@ class TabxEnv:
         alive = active & (health > 0)
         position = wall_contact(u.position, u.radius, ph.arena_size)[0]
         inside = in_ellipses(position, z.centre, z.semi_axes, z.zone_type)
+        heading = jnp.mod(u.heading, 2 * jnp.pi)
+        facing_vec, half_sight = facing(heading, u.sight_angle)
         state = EnvState(
             position=position,
             velocity=jnp.zeros((n, 2), jnp.float32),
-            heading=jnp.mod(u.heading, 2 * jnp.pi),
+            heading=heading,
+            facing=facing_vec,
+            half_sight=half_sight,
             health=health,
             alive=alive,
             # Seconds since the last attack as the first action sees it (the reference starts
@@ -155,8 +159,16 @@ class TabxEnv:
                                                        state.target, u.damage)
         table = _ACTION_TABLE[action]
         velocity = table[:, :2] * jnp.where(able, state.speed, 0.0)[:, None]
-        turn = table[:, 2] * ph.turn_rate * dt * able
-        heading = jnp.mod(state.heading + turn, 2 * jnp.pi)
+        turn = table[:, 2] * able  # -1 right, +1 left, 0 none
+        step_angle = ph.turn_rate * dt
+        heading = jnp.mod(state.heading + turn * step_angle, 2 * jnp.pi)
+        # Rotate the facing vector by the same angle (one cos/sin per env, not per unit), and
+        # renormalise so that rounding never accumulates over an episode.
+        cos_t = jnp.where(turn != 0, jnp.cos(step_angle), 1.0)
+        sin_t = turn * jnp.sin(step_angle)
+        fx, fy = state.facing[:, 0], state.facing[:, 1]
+        rotated = jnp.stack([fx * cos_t - fy * sin_t, fy * cos_t + fx * sin_t], -1)
+        facing_vec = rotated * jax.lax.rsqrt(jnp.sum(rotated * rotated, -1, keepdims=True))
         # A whiffed attack still spends the cooldown (reference behaviour).
         cooldown = jnp.clip(jnp.where(attacking, 0.0, state.cooldown) + dt, 0.0, u.cooldown)
 
@@ -184,7 +196,8 @@ class TabxEnv:
         reward = reward + jnp.where(done, terminal, 0.0)
 
         advanced = state.replace(
-            position=position, velocity=velocity, heading=heading, health=health, alive=alive,
+            position=position, velocity=velocity, heading=heading, facing=facing_vec,
+            health=health, alive=alive,
             cooldown=cooldown, speed=speed, hp_ratio=hp_ratio, step=step, done=done, won=won)
         info = {
             "attacking": attacking,
@@ -203,7 +216,7 @@ class TabxEnv:
         u, z = params.units, params.zones
         active = u.active.astype(bool)
         rel = pairwise_offsets(state.position)
-        trig = jax.lax.optimization_barrier(facing(state.heading, u.sight_angle))
+        trig = view_trig(state.facing, state.half_sight)
         fov = field_of_view(rel, trig, u.radius) & active[None, :]
         visible = bush_visibility(fov, inside, z.zone_type, u.team, state.alive, interacted)
         attackable, target, has_target = attack_targets(

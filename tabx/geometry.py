@@ -15,25 +15,32 @@ def pairwise_offsets(position: jax.Array) -> jax.Array:
     return position[None, :, :] - position[:, None, :]
 
 
-def facing(heading: jax.Array, sight_angle: jax.Array) -> jax.Array:
-    """(N, 8) per-unit trigonometry used by the pairwise tests, computed once per step:
-    cos/sin of the heading, of the two wedge edges (heading +- sight/2), and cos/sin(sight/2).
+def facing(heading: jax.Array, sight_angle: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """(facing, half_sight): (N, 2) cos/sin of the heading and of half the sight angle."""
+    half = 0.5 * sight_angle
+    return (jnp.stack([jnp.cos(heading), jnp.sin(heading)], -1),
+            jnp.stack([jnp.cos(half), jnp.sin(half)], -1))
 
-    The pairwise tests read these instead of calling sin/cos per pair: XLA would otherwise
-    duplicate the transcendentals into every (N, N) consumer.
+
+def view_trig(facing: jax.Array, half_sight: jax.Array) -> jax.Array:
+    """(N, 8) per-unit trigonometry used by the pairwise tests, from products only:
+    cos/sin of the heading, of the two wedge edges (heading +- sight/2), and of sight/2.
+
+    Computed once per step and materialised: XLA would otherwise duplicate it into every
+    (N, N) consumer.
     """
-    c, s = jnp.cos(heading), jnp.sin(heading)
-    ch, sh = jnp.cos(0.5 * sight_angle), jnp.sin(0.5 * sight_angle)
-    # Edges by angle addition: four transcendentals per unit instead of eight.
-    return jnp.stack([c, s, c * ch - s * sh, s * ch + c * sh, c * ch + s * sh, s * ch - c * sh,
+    c, s = facing[:, 0], facing[:, 1]
+    ch, sh = half_sight[:, 0], half_sight[:, 1]
+    trig = jnp.stack([c, s, c * ch - s * sh, s * ch + c * sh, c * ch + s * sh, s * ch - c * sh,
                       ch, sh], axis=-1)
+    return jax.lax.optimization_barrier(trig)
 
 
 def field_of_view(rel: jax.Array, trig: jax.Array, target_radius: jax.Array) -> jax.Array:
     """fov[v, t]: t's body touches v's view wedge (total angle sight_angle < pi, infinite range).
 
     Each edge of the wedge is pushed outward by the *target's* radius (the reference's test),
-    so a target slightly behind the apex is still seen. `trig` comes from `facing`.
+    so a target slightly behind the apex is still seen. `trig` comes from `view_trig`.
     """
     # Inward normals of the two edges: n1 = (-sin, cos)(left), n2 = (-sin, cos)(right).
     d1 = -trig[:, None, 3] * rel[..., 0] + trig[:, None, 2] * rel[..., 1]
@@ -47,7 +54,7 @@ def hurtbox_overlap(rel: jax.Array, trig: jax.Array, radius: jax.Array,
     """hit[a, t]: t's circle strictly overlaps a's rectangular hurtbox.
 
     In a's frame (+x = heading) the box spans x in [r_a cos(s/2), r_a cos(s/2) + range] and
-    |y| <= r_a sin(s/2), with s a's sight angle (the reference's geometry). `trig` from `facing`.
+    |y| <= r_a sin(s/2), with s a's sight angle (the reference's geometry). `trig` from `view_trig`.
     """
     c, s = trig[:, None, 0], trig[:, None, 1]
     local_x = c * rel[..., 0] + s * rel[..., 1]

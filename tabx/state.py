@@ -3,7 +3,8 @@
 Besides positions, health and the like, the state keeps the geometry computed at the end of the
 previous step (visibility, which units each unit can hit, its nearest target). Observations and
 the attack resolution of the next step read exactly this, so an agent's attack hits what its
-observation said it could hit.
+observation said it could hit. The heading is also kept as a unit vector, rotated by the turn
+actions, so the step evaluates no sine or cosine per unit (slow on CPU).
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ class EnvState:
     position: jax.Array  # (N, 2) float32
     velocity: jax.Array  # (N, 2) float32, set by the last action; applied at the next step
     heading: jax.Array  # (N,) float32 radians in [0, 2 pi)
+    facing: jax.Array  # (N, 2) float32 (cos, sin) of heading, rotated along with it
+    half_sight: jax.Array  # (N, 2) float32 (cos, sin) of half the sight angle (fixed per episode)
     health: jax.Array  # (N,) float32 in [0, max_health]
     alive: jax.Array  # (N,) bool; False for padding, and forever once dead
     cooldown: jax.Array  # (N,) float32 seconds since the last attack, as the next action sees it
