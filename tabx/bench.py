@@ -4,8 +4,9 @@ Protocol (issue #2): random legal actions for every unit slot; `jit` of a 128-st
 over `vmap(step_autoreset)`; the batch of levels is a jit *argument* (never a baked-in
 constant); one warm-up call, then 3 timed calls (median, `block_until_ready`). Env steps/s =
 num_envs x steps / seconds, compile excluded; compile time (lower + compile) reported
-separately. The observation is carried through the scan, so it is computed every step, as a
-policy would need it.
+separately. By default the observation is carried through the scan, so it is computed every
+step as a policy would need it; with `--no-obs` it is dropped (a random policy never reads it,
+and XLA then skips computing it), which is what a plain random-action benchmark measures.
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ class BenchResult:
     team_size: int
     zones: int
     num_envs: int
+    with_obs: bool
     steps: int
     compile_s: float
     run_s: float
@@ -57,7 +59,7 @@ def bench_level(team_size: int, num_zones: int) -> tuple[EnvConfig, EnvParams]:
     return config, make_level(config, allies, enemies, zones)
 
 
-def make_rollout(env: TabxEnv, steps: int):
+def make_rollout(env: TabxEnv, steps: int, with_obs: bool = True):
     """jit(levels, key) -> final carry of a `steps`-long random-action scan over all envs."""
 
     def rollout(levels: EnvParams, key: jax.Array):
@@ -70,8 +72,9 @@ def make_rollout(env: TabxEnv, steps: int):
             key, k_act = jax.random.split(key)
             masks = jax.vmap(env.action_mask)(states, levels)
             actions = random_legal_actions(k_act, masks)
-            obs, states, reward, done, _ = jax.vmap(env.step_autoreset)(
+            new_obs, states, reward, done, _ = jax.vmap(env.step_autoreset)(
                 jax.random.split(key, num_envs), states, actions, levels, start_states)
+            obs = new_obs if with_obs else obs
             return (key, states, obs, total + reward.sum() + done.sum()), None
 
         carry, _ = jax.lax.scan(body, (key, states, obs, jnp.zeros(())), None, length=steps)
@@ -81,13 +84,13 @@ def make_rollout(env: TabxEnv, steps: int):
 
 
 def run_one(team_size: int, num_zones: int, num_envs: int, steps: int = 128,
-            repeats: int = 3) -> BenchResult:
+            repeats: int = 3, with_obs: bool = True) -> BenchResult:
     config, level = bench_level(team_size, num_zones)
     env = TabxEnv(config)
     levels = repeat_level(level, num_envs)
     levels = jax.tree.map(lambda x: jnp.array(x), levels)  # materialise: a real argument
     key = jax.random.key(0)
-    fn = make_rollout(env, steps)
+    fn = make_rollout(env, steps, with_obs)
     t0 = time.perf_counter()
     compiled = fn.lower(levels, key).compile()
     compile_s = time.perf_counter() - t0
@@ -98,7 +101,7 @@ def run_one(team_size: int, num_zones: int, num_envs: int, steps: int = 128,
         jax.block_until_ready(compiled(levels, jax.random.key(i + 1)))
         times.append(time.perf_counter() - t0)
     run_s = statistics.median(times)
-    return BenchResult(team_size, num_zones, num_envs, steps, compile_s, run_s,
+    return BenchResult(team_size, num_zones, num_envs, with_obs, steps, compile_s, run_s,
                        num_envs * steps / run_s)
 
 
@@ -109,14 +112,15 @@ def machine_summary() -> str:
 
 
 def bench_env(args: argparse.Namespace) -> int:
-    print(f"# tabx bench env on {machine_summary()}", flush=True)
+    print(f"# tabx bench env on {machine_summary()}; observations "
+          f"{'computed every step' if args.obs else 'not computed (--no-obs)'}", flush=True)
     print(f"{'units':>6} {'zones':>5} {'envs':>6} {'compile s':>9} {'run s':>8} "
           f"{'steps/s':>12}", flush=True)
     results = []
     configs = [(t, z, n) for t in args.team_sizes for z in args.zones for n in args.num_envs]
     t_start = time.perf_counter()
     for i, (team, zones, envs) in enumerate(configs):
-        r = run_one(team, zones, envs, steps=args.steps, repeats=args.repeats)
+        r = run_one(team, zones, envs, steps=args.steps, repeats=args.repeats, with_obs=args.obs)
         results.append(r)
         elapsed = time.perf_counter() - t_start
         eta = elapsed / (i + 1) * (len(configs) - i - 1)
@@ -155,6 +159,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                      help="comma-separated env counts (default 1,16,128,1024)")
     env.add_argument("--steps", type=int, default=128, help="scan length (default 128)")
     env.add_argument("--repeats", type=int, default=3, help="timed calls (median; default 3)")
+    env.add_argument("--no-obs", dest="obs", action="store_false",
+                     help="do not compute observations (random policy; state only)")
     env.add_argument("--json", help="also write results as JSON lines to this file")
     env.set_defaults(func=bench_env)
 

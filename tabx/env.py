@@ -181,6 +181,9 @@ class TabxEnv:
         health = jnp.clip(state.health - wall_loss - attack_loss - lava_loss, 0.0, u.max_health)
         health = jnp.where(able, health, state.health)
         alive = able & (health > 0)
+        # A unit that dies this step does not drift on with the move it chose (the reference's
+        # corpse moves once more).
+        velocity = jnp.where(alive[:, None], velocity, 0.0)
 
         # 6. Outcome.
         active = u.active.astype(bool)

@@ -102,14 +102,16 @@ def observe(config: EnvConfig, state: EnvState, params: EnvParams) -> jax.Array:
     rel = (state.position[others] - state.position[:, None, :]) / half  # (N, N-1, 2)
     is_ally = (u.team[others] == u.team[:, None]).astype(jnp.float32)
     attackable = jnp.take_along_axis(state.attackable, others, axis=1).astype(jnp.float32)
-    visible = jnp.take_along_axis(state.visible, others, axis=1) & u.active[others]
+    # Padded viewers see nothing (their whole observation is zeros); masking the parts rather
+    # than the concatenated result saves a full pass over the largest array of the step.
+    visible = (jnp.take_along_axis(state.visible, others, axis=1) & u.active[others]
+               & u.active[:, None])
     other = (per_unit[others]
              + rel[..., 0:1] * _BASIS[2] + rel[..., 1:2] * _BASIS[3]
              + is_ally[..., None] * _BASIS[13] + attackable[..., None] * _BASIS[14])
     other = jnp.where(visible[..., None], other, 0.0)  # (N, N-1, 16)
-    zones = zone_features(params, state.position)  # (N, Z, 6)
-    obs = jnp.concatenate([own, other.reshape(n, -1), zones.reshape(n, -1)], axis=-1)
-    return obs * u.active[:, None]
+    zones = zone_features(params, state.position) * u.active[:, None, None]  # (N, Z, 6)
+    return jnp.concatenate([own, other.reshape(n, -1), zones.reshape(n, -1)], axis=-1)
 
 
 def world_state(config: EnvConfig, state: EnvState, params: EnvParams) -> jax.Array:
