@@ -26,6 +26,7 @@ import numpy as np
 from level_buffer.buffer import LevelBuffer
 from level_buffer.config import Source
 from level_buffer.fileformat import FORMAT_VERSION, BufferFileError
+from level_buffer.tree import named_leaves
 
 QUANTILES = (("min", 0.0), ("p10", 0.1), ("p25", 0.25), ("median", 0.5), ("p75", 0.75),
              ("p90", 0.9), ("max", 1.0))
@@ -186,11 +187,39 @@ def cmd_top(args: argparse.Namespace) -> int:
     return 0
 
 
+def as_env_params(leaves: dict[str, Any]) -> Any | None:
+    """The level as `tabx.params.EnvParams` if its key paths are exactly EnvParams', else None
+    (the buffer is generic: other level pytrees are shown as their leaves)."""
+    import jax
+
+    from tabx.params import EnvConfig, make_level
+
+    template = make_level(EnvConfig(max_allies=1, max_enemies=1, max_zones=1), [], [])
+    names = list(named_leaves(template))
+    if set(names) != set(leaves):
+        return None
+    treedef = jax.tree_util.tree_structure(template)
+    return jax.tree_util.tree_unflatten(treedef, [np.asarray(leaves[n]) for n in names])
+
+
+def scenario_text(buf: LevelBuffer, level_id: int) -> str | None:
+    """The level as scenario JSON (the format `tabx rollout` and the editor open), or None when
+    the level is not a TABX level."""
+    from tabx.scenarios import dumps_scenario, level_to_scenario
+
+    params = as_env_params(buf.get_level(level_id))
+    if params is None:
+        return None
+    scenario = level_to_scenario(params, name=f"buffer_level_{level_id}",
+                                 description=f"level {level_id} exported from a level buffer")
+    return dumps_scenario(scenario)
+
+
 def cmd_show(args: argparse.Namespace) -> int:
     buf = _load(args.file)
     _check_id(buf, args.id, args.file)
-    # Scenario-JSON output waits on the scenario writer (tabx.scenarios); leaves for now.
-    print(dumps_level(level_json(buf, args.id)), end="")
+    text = None if args.leaves else scenario_text(buf, args.id)
+    print(text if text is not None else dumps_level(level_json(buf, args.id)), end="")
     return 0
 
 
@@ -199,8 +228,10 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     buf = _load(args.file)
     _check_id(buf, args.id, args.file)
-    atomic_write_text(args.out, dumps_level(level_json(buf, args.id)))
-    print(f"wrote level {args.id} to {args.out}")
+    text = None if args.leaves else scenario_text(buf, args.id)
+    kind = "scenario" if text is not None else "level leaves"
+    atomic_write_text(args.out, text if text is not None else dumps_level(level_json(buf, args.id)))
+    print(f"wrote level {args.id} ({kind}) to {args.out}")
     return 0
 
 
@@ -311,15 +342,18 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("-k", type=int, default=10, help="how many (default 10)")
     p.set_defaults(func=cmd_top)
 
-    p = sub.add_parser("show", help="one level as JSON (slot data and fields by key path)")
+    leaves_help = "print the raw fields by key path instead of scenario JSON"
+    p = sub.add_parser("show", help="one level as scenario JSON (TABX levels) or its fields")
     p.add_argument("file")
     p.add_argument("id", type=int, help="the level id")
+    p.add_argument("--leaves", action="store_true", help=leaves_help)
     p.set_defaults(func=cmd_show)
 
-    p = sub.add_parser("export", help="write one level as JSON")
+    p = sub.add_parser("export", help="write one level as a scenario file (tabx rollout FILE)")
     p.add_argument("file")
     p.add_argument("id", type=int, help="the level id")
     p.add_argument("--out", required=True, help="output JSON path")
+    p.add_argument("--leaves", action="store_true", help=leaves_help)
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("hist", help="text histogram of a level field over the buffer")

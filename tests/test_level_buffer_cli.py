@@ -138,3 +138,28 @@ def test_png_without_matplotlib(capsys, buffer_file, tmp_path, monkeypatch):
     monkeypatch.setattr(builtins, "__import__", no_matplotlib)
     code, _, err = run(capsys, "hist", buffer_file, "units.health", "--png", tmp_path / "x.png")
     assert code == 2 and "--png needs matplotlib" in err
+
+
+def test_show_and_export_tabx_levels_as_scenarios(capsys, tmp_path):
+    """A buffer of TABX levels exports scenario files that `tabx rollout` opens."""
+    import jax
+
+    from tabx.scenarios import load_file, load_named
+
+    scenario = load_named("crossfire")
+    level = jax.tree.map(np.asarray, scenario.to_level())
+    buf = LevelBuffer(level, capacity=4)
+    result = buf.insert(level, 0.5)
+    path = tmp_path / "tabx_levels.msgpack"
+    buf.save(path)
+    level_id = int(np.asarray(result.ids).reshape(-1)[0])
+
+    assert tabx_cli.main(["buffer", "show", str(path), str(level_id)]) == 0
+    assert '"format": "tabx-scenario/1"' in capsys.readouterr().out
+    out_file = tmp_path / "exported.json"
+    argv = ["buffer", "export", str(path), str(level_id), "--out", str(out_file)]
+    assert tabx_cli.main(argv) == 0
+    exported = load_file(out_file)
+    assert [u.unit for u in exported.units] == [u.unit for u in scenario.units]
+    assert tabx_cli.main(["rollout", str(out_file), "--steps", "5"]) == 0
+    assert "outcome: still running after 5 steps" in capsys.readouterr().out
