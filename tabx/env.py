@@ -228,10 +228,6 @@ class TabxEnv:
                              has_target=has_target)
 
 
-def make_env(config: EnvConfig) -> TabxEnv:
-    return TabxEnv(config)
-
-
 def random_legal_actions(key: jax.Array, mask: jax.Array) -> jax.Array:
     """Uniform random legal action per unit slot from a (..., 8) bool mask.
 
