@@ -6,6 +6,7 @@
     tabx buffer export FILE ID --out level.json
     tabx buffer hist FILE FIELD [--bins 20] [--png out.png]
     tabx buffer diff FILE ID1 ID2       the level fields that differ
+    tabx buffer render FILE --id ID --out level.png   a TABX level's start state as a PNG
 
 Files are read without a template, so any buffer file can be inspected. Registered by
 `tabx.cli` through `add_parser(subparsers)`.
@@ -235,6 +236,27 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_render(args: argparse.Namespace) -> int:
+    from tabx.params import level_config
+    from tabx.render import render_level, save_png
+    from tabx.scenarios.cli import check_render_options
+
+    check_render_options(args.out, args.scale)
+    buf = _load(args.file)
+    _check_id(buf, args.id, args.file)
+    params = as_env_params(buf.get_level(args.id))
+    if params is None:
+        raise _user_error(f"{args.file}: level {args.id} is not a TABX level (its fields are not "
+                          "tabx.params.EnvParams'); render draws buffers of TABX levels only")
+    record = buf.record(args.id)
+    title = f"buffer level {args.id} (score {record['score']:.4g}, {record['source']})"
+    image = render_level(level_config(params), params, scale=args.scale, show_fov=args.fov,
+                         title=title)
+    save_png(image, args.out)
+    print(f"wrote level {args.id} to {args.out} ({image.width} x {image.height})")
+    return 0
+
+
 def _histogram_counts(values: np.ndarray, bins: int) -> list[tuple[str, int]]:
     distinct = np.unique(values)
     if distinct.size <= bins and np.all(distinct == np.round(distinct)):
@@ -363,6 +385,14 @@ def add_parser(subparsers: Any) -> None:
     p.add_argument("--width", type=int, default=50, help="longest bar, in characters")
     p.add_argument("--png", help="also save a PNG plot here (needs matplotlib)")
     p.set_defaults(func=cmd_hist)
+
+    p = sub.add_parser("render", help="draw a TABX level's start state as a PNG image")
+    p.add_argument("file")
+    p.add_argument("--id", type=int, required=True, help="the level id")
+    p.add_argument("--out", required=True, help="output PNG path (its folder must exist)")
+    p.add_argument("--fov", action="store_true", help="draw each unit's field of view")
+    p.add_argument("--scale", type=float, default=8.0, help="pixels per world unit (default 8)")
+    p.set_defaults(func=cmd_render)
 
     p = sub.add_parser("diff", help="the level fields in which two levels differ")
     p.add_argument("file")

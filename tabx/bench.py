@@ -1,5 +1,8 @@
 """`tabx bench env`: simulator throughput and compile time.
 
+`--ally` / `--enemy` choose each team's controller (tabx.controllers): the heuristic protocol
+of issue #3 is `--enemy heuristic:medium` (random allies, scripted enemies).
+
 Protocol (issue #2): random legal actions for every unit slot; `jit` of a 128-step `lax.scan`
 over `vmap(step_autoreset)`; the batch of levels is a jit *argument* (never a baked-in
 constant); one warm-up call, then 3 timed calls (median, `block_until_ready`). Env steps/s =
@@ -23,8 +26,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from tabx.controllers import Controller, controlled_actions, with_tiers
 from tabx.env import TabxEnv, random_legal_actions
 from tabx.params import EnvConfig, EnvParams, make_level, repeat_level
+
+RANDOM_BOTH = (Controller("random"), Controller("random"))
 
 TEAM_SIZES = (3, 5, 10)
 NUM_ENVS = (1, 16, 128, 1024)
@@ -42,6 +48,7 @@ class BenchResult:
     compile_s: float
     run_s: float
     steps_per_s: float
+    controllers: str = "random/random"
 
 
 def bench_level(team_size: int, num_zones: int) -> tuple[EnvConfig, EnvParams]:
@@ -59,8 +66,11 @@ def bench_level(team_size: int, num_zones: int) -> tuple[EnvConfig, EnvParams]:
     return config, make_level(config, allies, enemies, zones)
 
 
-def make_rollout(env: TabxEnv, steps: int, with_obs: bool = True):
-    """jit(levels, key) -> final carry of a `steps`-long random-action scan over all envs."""
+def make_rollout(env: TabxEnv, steps: int, with_obs: bool = True,
+                 controllers: tuple[Controller, Controller] = RANDOM_BOTH):
+    """jit(levels, key) -> final carry of a `steps`-long scan over all envs, each team driven
+    by its controller (random legal actions by default)."""
+    plain_random = all(c.kind == "random" for c in controllers)
 
     def rollout(levels: EnvParams, key: jax.Array):
         num_envs = levels.reward_mode.shape[0]
@@ -70,8 +80,13 @@ def make_rollout(env: TabxEnv, steps: int, with_obs: bool = True):
         def body(carry, _):
             key, states, obs, total = carry
             key, k_act = jax.random.split(key)
-            masks = jax.vmap(env.action_mask)(states, levels)
-            actions = random_legal_actions(k_act, masks)
+            if plain_random:
+                masks = jax.vmap(env.action_mask)(states, levels)
+                actions = random_legal_actions(k_act, masks)
+            else:
+                actions, states = jax.vmap(
+                    lambda k, s, p: controlled_actions(k, s, p, None, controllers))(
+                    jax.random.split(k_act, num_envs), states, levels)
             new_obs, states, reward, done, _ = jax.vmap(env.step_autoreset)(
                 jax.random.split(key, num_envs), states, actions, levels, start_states)
             obs = new_obs if with_obs else obs
@@ -84,13 +99,14 @@ def make_rollout(env: TabxEnv, steps: int, with_obs: bool = True):
 
 
 def run_one(team_size: int, num_zones: int, num_envs: int, steps: int = 128,
-            repeats: int = 3, with_obs: bool = True) -> BenchResult:
+            repeats: int = 3, with_obs: bool = True,
+            controllers: tuple[Controller, Controller] = RANDOM_BOTH) -> BenchResult:
     config, level = bench_level(team_size, num_zones)
     env = TabxEnv(config)
-    levels = repeat_level(level, num_envs)
+    levels = repeat_level(with_tiers(level, controllers), num_envs)
     levels = jax.tree.map(lambda x: jnp.array(x), levels)  # materialise: a real argument
     key = jax.random.key(0)
-    fn = make_rollout(env, steps, with_obs)
+    fn = make_rollout(env, steps, with_obs, controllers)
     t0 = time.perf_counter()
     compiled = fn.lower(levels, key).compile()
     compile_s = time.perf_counter() - t0
@@ -102,7 +118,7 @@ def run_one(team_size: int, num_zones: int, num_envs: int, steps: int = 128,
         times.append(time.perf_counter() - t0)
     run_s = statistics.median(times)
     return BenchResult(team_size, num_zones, num_envs, with_obs, steps, compile_s, run_s,
-                       num_envs * steps / run_s)
+                       num_envs * steps / run_s, "/".join(map(str, controllers)))
 
 
 def machine_summary() -> str:
@@ -112,15 +128,26 @@ def machine_summary() -> str:
 
 
 def bench_env(args: argparse.Namespace) -> int:
+    from tabx.cli import UserError
+
+    try:
+        controllers = (Controller.parse(args.ally), Controller.parse(args.enemy))
+    except ValueError as err:
+        raise UserError(str(err)) from None
+    if any(c.kind == "external" for c in controllers):
+        raise UserError("--ally/--enemy: the benchmark has no learner; use random, idle or "
+                        "heuristic[:TIER]")
     print(f"# tabx bench env on {machine_summary()}; observations "
-          f"{'computed every step' if args.obs else 'not computed (--no-obs)'}", flush=True)
+          f"{'computed every step' if args.obs else 'not computed (--no-obs)'}; allies "
+          f"{controllers[0]}, enemies {controllers[1]}", flush=True)
     print(f"{'units':>6} {'zones':>5} {'envs':>6} {'compile s':>9} {'run s':>8} "
           f"{'steps/s':>12}", flush=True)
     results = []
     configs = [(t, z, n) for t in args.team_sizes for z in args.zones for n in args.num_envs]
     t_start = time.perf_counter()
     for i, (team, zones, envs) in enumerate(configs):
-        r = run_one(team, zones, envs, steps=args.steps, repeats=args.repeats, with_obs=args.obs)
+        r = run_one(team, zones, envs, steps=args.steps, repeats=args.repeats, with_obs=args.obs,
+                    controllers=controllers)
         results.append(r)
         elapsed = time.perf_counter() - t_start
         eta = elapsed / (i + 1) * (len(configs) - i - 1)
@@ -161,6 +188,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     env.add_argument("--repeats", type=int, default=3, help="timed calls (median; default 3)")
     env.add_argument("--no-obs", dest="obs", action="store_false",
                      help="do not compute observations (random policy; state only)")
+    env.add_argument("--ally", default="random",
+                     help="ally controller: random, idle, heuristic[:TIER] (default random)")
+    env.add_argument("--enemy", default="random",
+                     help="enemy controller (default random; the issue #3 protocol uses "
+                          "heuristic:medium)")
     env.add_argument("--json", help="also write results as JSON lines to this file")
     env.set_defaults(func=bench_env)
 

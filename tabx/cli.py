@@ -16,6 +16,7 @@ REGISTRARS = (
     "tabx.rollout",  # tabx rollout
     "tabx.bench",  # tabx bench env
     "level_buffer.cli",  # tabx buffer ...
+    "tabx.editor.cli",  # tabx editor
 )
 
 

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 from tabx import constants as C
 from tabx.combat import attack_targets, resolve_attacks
 from tabx.geometry import facing, field_of_view, in_ellipses, pairwise_offsets, view_trig
-from tabx.observe import action_mask, cooldown_ready, observe, world_state
+from tabx.observe import action_mask, cooldown_ready, observe, pick_legal, world_state
 from tabx.params import EnvConfig, EnvParams
 from tabx.physics import integrate, resolve_collisions, wall_contact
 from tabx.reward import dense_reward, team_hp_ratio, winner_mask
@@ -133,6 +133,9 @@ class TabxEnv:
             step=jnp.zeros((), jnp.int32),
             done=jnp.zeros((), bool),
             won=jnp.zeros(C.NUM_TEAMS, bool),
+            memory_position=jnp.zeros((n, 2), jnp.float32),
+            memory_valid=jnp.zeros(n, bool),
+            search_turn=jnp.full((n,), C.TURN_RIGHT, jnp.int32),
         )
         return state, inside
 
@@ -152,8 +155,9 @@ class TabxEnv:
                                          ph.percent)
         position = wall_contact(position, u.radius, ph.arena_size)[0]
 
-        # 2. Actions.
-        action = jnp.clip(actions.astype(jnp.int32), 0, C.NUM_ACTIONS - 1)
+        # 2. Actions. Materialised: XLA would otherwise fuse a policy's whole per-unit
+        # computation (the scripted policy, say) into every (N, N) consumer downstream.
+        action = materialise_actions(actions)
         attacking = (action == C.ATTACK) & cooldown_ready(state.cooldown, u.cooldown) & able
         attack_loss, hit, interacted = resolve_attacks(attacking, state.has_target,
                                                        state.target, u.damage)
@@ -218,7 +222,8 @@ class TabxEnv:
         """Visibility, hurtbox reach and nearest targets for the state's positions."""
         u, z = params.units, params.zones
         active = u.active.astype(bool)
-        rel = pairwise_offsets(state.position)
+        # Per-unit positions once, not recomputed inside each (N, N) fusion.
+        rel = pairwise_offsets(jax.lax.optimization_barrier(state.position))
         trig = view_trig(state.facing, state.half_sight)
         fov = field_of_view(rel, trig, u.radius) & active[None, :]
         visible = bush_visibility(fov, inside, z.zone_type, u.team, state.alive, interacted)
@@ -228,14 +233,16 @@ class TabxEnv:
                              has_target=has_target)
 
 
-def random_legal_actions(key: jax.Array, mask: jax.Array) -> jax.Array:
-    """Uniform random legal action per unit slot from a (..., 8) bool mask.
+def materialise_actions(actions: jax.Array) -> jax.Array:
+    """Actions clipped to the valid range, as a reduction's output so that XLA computes them
+    once. XLA on CPU drops optimization barriers before fusing, and would otherwise fuse a
+    policy's whole per-unit computation (the scripted policy's, say) into each element of the
+    (N, N) geometry that depends on it: N times the work."""
+    slots = jnp.arange(C.NUM_ACTIONS, dtype=jnp.int32)
+    one_hot = jnp.clip(actions.astype(jnp.int32), 0, C.NUM_ACTIONS - 1)[..., None] == slots
+    return jnp.max(jnp.where(one_hot, slots, 0), axis=-1)
 
-    One uniform draw per unit picks the k-th legal action: 8 times fewer random bits than
-    Gumbel-max sampling, which matters on CPU where threefry dominates a random rollout.
-    Every row must have at least one legal action (IDLE always is).
-    """
-    count = jnp.sum(mask, axis=-1)
-    pick = jnp.floor(jax.random.uniform(key, count.shape) * count).astype(jnp.int32)
-    pick = jnp.minimum(pick, count - 1)
-    return jnp.argmax(jnp.cumsum(mask, axis=-1) > pick[..., None], axis=-1).astype(jnp.int32)
+
+def random_legal_actions(key: jax.Array, mask: jax.Array) -> jax.Array:
+    """Uniform random legal action per unit slot from a (..., 8) bool mask."""
+    return pick_legal(jax.random.uniform(key, mask.shape[:-1]), mask)

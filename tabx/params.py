@@ -133,22 +133,35 @@ class EnvParams:
 
 # --- defaults --------------------------------------------------------------------------------
 
+# The reference's key spellings in its data files, and the order of the tiers by skill.
+_REFERENCE_KEYS = {"assasin_speed": "assassin_speed"}
+TIER_ORDER = ("random", "novice", "medium", "advanced", "expert")
+
+
+def _load_presets(folder: str) -> dict[str, dict[str, float]]:
+    """Presets shipped as the reference's JSON files (MIT, Copyright (c) 2025 TABX; see
+    tabx/data/LICENSE-TABX): one file per name, each value a one-element list."""
+    import json
+    from importlib.resources import files
+
+    out = {}
+    for entry in sorted(files("tabx.data").joinpath(folder).iterdir(), key=lambda e: e.name):
+        if entry.name.endswith(".json"):
+            raw = json.loads(entry.read_text())
+            out[entry.name[:-5]] = {_REFERENCE_KEYS.get(k, k): float(v[0] if isinstance(v, list)
+                                                                    else v)
+                                    for k, v in raw.items()}
+    return out
+
+
+# The five opponent tiers (paper table "Heuristic policy parameters"): tabx/data/heuristic_policy.
 HEURISTIC_TIERS: dict[str, dict[str, float]] = {
-    # Reference heuristic_policy/*.json (MIT, Copyright (c) 2025 TABX); paper table.
-    "random": dict(epsilon=1.0, aggressive_threshold=0.0),
-    "novice": dict(epsilon=0.5, aggressive_threshold=0.1),
-    "medium": dict(epsilon=0.2, aggressive_threshold=0.3),
-    "advanced": dict(epsilon=0.1, aggressive_threshold=0.5),
-    "expert": dict(epsilon=0.01, aggressive_threshold=0.7),
-}
+    name: preset for name, preset in sorted(_load_presets("heuristic_policy").items(),
+                                            key=lambda item: TIER_ORDER.index(item[0]))}
 HEURISTIC_COMMON = dict(healer_aggressive_threshold=0.85, assassin_speed=1.4,
                         ranger_attack_range=10.0)
-
-PHYSICS_PRESETS: dict[str, dict[str, float]] = {
-    # Reference physics/*.json (MIT, Copyright (c) 2025 TABX).
-    "default": dict(dt=0.5, percent=0.5, slop=0.01, restitution=0.8),
-    "fast": dict(dt=1.0, percent=0.5, slop=0.01, restitution=0.8),
-}
+# Physics presets (reference physics/*.json): tabx/data/physics.
+PHYSICS_PRESETS: dict[str, dict[str, float]] = _load_presets("physics")
 
 
 def heuristic_params(ally: str | dict = "medium", enemy: str | dict = "medium") -> HeuristicParams:

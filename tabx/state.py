@@ -1,7 +1,8 @@
 """`EnvState`: the dynamic part of one battle (the level, `EnvParams`, stays outside).
 
 Besides positions, health and the like, the state keeps the geometry computed at the end of the
-previous step (visibility, which units each unit can hit, its nearest target). Observations and
+previous step (visibility, which units each unit can hit, its nearest target), and the
+memory of the scripted opponent (last seen target position, search direction). Observations and
 the attack resolution of the next step read exactly this, so an agent's attack hits what its
 observation said it could hit. The heading is also kept as a unit vector, rotated by the turn
 actions, so the step evaluates no sine or cosine per unit (slow on CPU).
@@ -32,3 +33,8 @@ class EnvState:
     step: jax.Array  # () int32 steps taken in this episode
     done: jax.Array  # () bool: the episode has ended (stepping further changes nothing)
     won: jax.Array  # (2,) bool: which team won (set when done)
+    # Memory of the heuristic policy (tabx.heuristic), per unit slot; cleared at reset. It is
+    # part of the state so that a scripted unit remembers across steps inside jit/scan.
+    memory_position: jax.Array  # (N, 2) float32 where the unit last saw its chosen target
+    memory_valid: jax.Array  # (N,) bool: memory_position is set and not yet reached
+    search_turn: jax.Array  # (N,) int32 TURN_LEFT or TURN_RIGHT: current search direction

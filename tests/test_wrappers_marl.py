@@ -54,7 +54,7 @@ def test_autoreset_switches_to_the_next_level_only_at_episode_end():
 
 
 def test_marl_adapter_has_jaxmarl_semantics():
-    env = TabxMarlEnv(CONFIG, level=duel(), enemy="random")
+    env = TabxMarlEnv(CONFIG, level=duel(), opponent="random")
     assert env.agents == ["ally_0", "ally_1"] and env.num_agents == 2
     assert env.action_space("ally_0").n == C.NUM_ACTIONS
     assert env.observation_space("ally_1").shape == (CONFIG.obs_size,)
@@ -78,7 +78,7 @@ def test_marl_adapter_runs_a_vmapped_jaxmarl_style_rollout_with_sampled_levels()
         return level.replace(units=level.units.replace(
             position=level.units.position.at[0, 0].set(x)))
 
-    env = TabxMarlEnv(CONFIG, level_sampler=sampler, enemy="agents")
+    env = TabxMarlEnv(CONFIG, level_sampler=sampler, team="both")
     assert env.num_agents == 4
     num_envs = 8
 
@@ -108,8 +108,31 @@ def test_marl_adapter_runs_a_vmapped_jaxmarl_style_rollout_with_sampled_levels()
 def test_marl_adapter_rejects_bad_arguments():
     with pytest.raises(ValueError, match="exactly one"):
         TabxMarlEnv(CONFIG)
-    with pytest.raises(ValueError, match="enemy controller"):
-        TabxMarlEnv(CONFIG, level=duel(), enemy="smart")
+    with pytest.raises(ValueError, match="unknown controller"):
+        TabxMarlEnv(CONFIG, level=duel(), opponent="smart")
+    with pytest.raises(ValueError, match="unknown learner team"):
+        TabxMarlEnv(CONFIG, level=duel(), team="neutral")
+    with pytest.raises(ValueError, match="opponent must be"):
+        TabxMarlEnv(CONFIG, level=duel(), opponent="external")
+
+
+def test_flipped_adapter_puts_the_learner_on_the_enemy_team():
+    """team='enemy': the agents are the enemy slots, their rewards the enemy team's, and the
+    ally team follows the heuristic at the named tier (written into the level)."""
+    env = TabxMarlEnv(CONFIG, level=duel(-2.0), team="enemy", opponent="heuristic:expert")
+    assert env.agents == ["enemy_0", "enemy_1"]
+    np.testing.assert_allclose(env.level.heuristic.epsilon[C.ALLY], 0.01)
+    obs, state = env.reset(jax.random.key(0))
+    full = env.env.observe(state)
+    np.testing.assert_array_equal(obs["enemy_0"], full[CONFIG.max_allies])
+    step = jax.jit(env.step)
+    total = 0.0
+    for t in range(CONFIG.max_steps - 1):  # before the terminal reward
+        actions = {a: jnp.int32(C.IDLE) for a in env.agents}
+        obs, state, rewards, dones, infos = step(jax.random.key(t), state, actions)
+        total += float(rewards["enemy_0"])
+    # The idle enemy gets hit by the scripted ally: its team reward is negative.
+    assert total < 0.0
 
 
 def test_rollout_cli_prints_the_outcome(capsys):

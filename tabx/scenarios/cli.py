@@ -1,4 +1,5 @@
-"""`tabx scenarios list|show|validate`: browse the bundled and user scenarios, check a file."""
+"""`tabx scenarios list|show|validate|render`: browse the bundled and user scenarios, check a
+file, draw a scenario's start as a PNG."""
 
 from __future__ import annotations
 
@@ -26,6 +27,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = sub.add_parser("validate", help="check a scenario file (ours or the reference format)")
     p.add_argument("file")
     p.set_defaults(func=cmd_validate)
+    p = sub.add_parser("render", help="draw a scenario's start state as a PNG image")
+    p.add_argument("name", help="a name (crossfire, 2F1M2Avs2S1K_2L2B2S) or a JSON file path")
+    p.add_argument("--out", required=True, help="output PNG path (its folder must exist)")
+    p.add_argument("--fov", action="store_true", help="draw each unit's field of view")
+    p.add_argument("--scale", type=float, default=8.0,
+                   help="pixels per world unit (default 8: about 1000 x 720 pixels)")
+    p.set_defaults(func=cmd_render)
 
 
 def _user_error(err: ScenarioError) -> Exception:
@@ -139,4 +147,40 @@ def cmd_validate(args: argparse.Namespace) -> int:
         raise _user_error(err) from None
     note = "" if s.units else " (zone-only: compose it with a unit scenario to play)"
     print(f"OK: {summary(s)}{note}")
+    return 0
+
+
+MAX_SCALE = 40.0
+
+
+def check_render_options(out: str, scale: float) -> None:
+    """UserError unless `--out` is a writable .png path and `--scale` is sensible (shared with
+    `tabx buffer render`)."""
+    from tabx.cli import UserError
+    from tabx.render import check_png_path
+
+    if not (0 < scale <= MAX_SCALE):  # also rejects nan
+        raise UserError(f"--scale must be in (0, {MAX_SCALE:g}] pixels per world unit, "
+                        f"got {scale:g}")
+    try:
+        check_png_path(out)
+    except ValueError as err:
+        raise UserError(f"--out {err}") from None
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from tabx.render import render_level, save_png
+    from tabx.scenarios.format import config_for
+
+    check_render_options(args.out, args.scale)
+    try:
+        s = load_named(args.name)
+        config = config_for([s])
+        level = s.to_level(config)
+    except ScenarioError as err:
+        raise _user_error(err) from None
+    image = render_level(config, level, scale=args.scale, show_fov=args.fov,
+                         title=s.name)
+    save_png(image, args.out)
+    print(f"wrote {args.out} ({image.width} x {image.height}): {summary(s)}")
     return 0

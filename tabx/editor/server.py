@@ -1,0 +1,443 @@
+"""The editor's HTTP server: static page files from the package and a small JSON API.
+
+Stdlib only (`http.server.ThreadingHTTPServer`), bound to 127.0.0.1. Routes:
+
+| route | what it does |
+|---|---|
+| `GET /` and `GET /static/FILE` | the page (`tabx/editor/static/`) |
+| `GET /api/units` | unit types with default stats, every range table, zone types, tiers |
+| `GET /api/session` | the scenario named on the command line (or null) and the user folder |
+| `GET /api/scenarios` | bundled and user scenarios: name, category, split, source, counts |
+| `GET /api/scenario?name=N` | one scenario (bundled, user or a `UNITS_ZONES` composition) |
+| `POST /api/validate` | `{scenario}`: `{ok: true, summary}` or `{ok: false, error}` |
+| `POST /api/save` | `{scenario, name, category, overwrite}`: validate, then write atomically |
+| `POST /api/preview` | `{scenario, steps, ally, enemy, seed}`: play it in the simulator |
+
+Errors are JSON `{ok: false, error: {message, path, text}}`; `path` is the field path of a
+`ScenarioError` (`units[2].overrides.health`), which the page shows next to the field.
+
+Saving goes through the same validator as `tabx scenarios validate` and writes
+`<user_scenario_dir()>/<folder>/<name>.json` (folders `challenges`, `units`, `zones`, `user` by
+category) with `tabx.files.atomic_write_text`; never into the installed package. Names are the
+scenario-format names (no path separators); an existing file is replaced only with
+`overwrite: true`, and a name used by a bundled scenario or by a user file in another folder is
+refused (loading by name would find the other file).
+
+The API only serves names, never paths: a page cannot make the server read an arbitrary file.
+Requests whose `Host` is not the server's own loopback address are refused (DNS rebinding), and
+POST bodies must be `application/json` (a cross-site form cannot post one without a preflight,
+which the server does not answer).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+import re
+import threading
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from importlib import resources
+from pathlib import Path
+from typing import Any
+from urllib.parse import parse_qs, urlsplit
+
+from tabx import constants as C
+from tabx.files import atomic_write_text
+from tabx.scenarios import (
+    ARENA_RANGE,
+    CATEGORIES,
+    FORMAT,
+    HEURISTIC_RANGES,
+    PHYSICS_RANGES,
+    UNIT_STAT_RANGES,
+    ZONE_EFFECT_RANGES,
+    Range,
+    Scenario,
+    ScenarioError,
+    dumps_scenario,
+    list_scenarios,
+    load_file,
+    load_named,
+    user_scenario_dir,
+)
+from tabx.scenarios.format import HEADING_RANGE, NAME_PATTERN, SEMI_AXIS_RANGE, ZONE_TYPES
+from tabx.scenarios.registry import bundled_category
+
+HOST = "127.0.0.1"
+USER_FOLDERS = {"challenge": "challenges", "units": "units", "zones": "zones", "user": "user"}
+STATIC_TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
+                ".css": "text/css; charset=utf-8", ".png": "image/png", ".svg": "image/svg+xml"}
+STATIC_NAME = re.compile(r"^[a-z0-9_\-]+\.(html|js|css|png|svg)$")
+MAX_BODY = 8 * 1024 * 1024
+GRID_DEFAULTS = {"spacing": 4.25, "margin": 0.0}  # the reference editor: 28 x 18 on 121 x 78
+CSP = ("default-src 'self'; img-src 'self' data:; style-src 'self' 'unsafe-inline'; "
+       "script-src 'self'; connect-src 'self'; object-src 'none'; base-uri 'none'; "
+       "frame-ancestors 'none'")
+
+
+class EditorError(Exception):
+    """An API error: HTTP status, message and optional field path."""
+
+    def __init__(self, status: int, message: str, path: str = "", **extra: Any) -> None:
+        super().__init__(message)
+        self.status, self.message, self.path, self.extra = status, message, path, extra
+
+    def payload(self) -> dict[str, Any]:
+        text = f"{self.path}: {self.message}" if self.path else self.message
+        return {"ok": False, "error": {"message": self.message, "path": self.path, "text": text},
+                **self.extra}
+
+
+def _scenario_error(err: ScenarioError, status: int = 400, **extra: Any) -> EditorError:
+    return EditorError(status, err.message, err.path, **extra)
+
+
+def _range(r: Range) -> dict[str, Any]:
+    return {"lo": r.lo, "hi": r.hi, "lo_open": r.lo_open, "hi_open": r.hi_open, "text": str(r)}
+
+
+def _summary(s: Scenario) -> dict[str, Any]:
+    from tabx.scenarios.cli import composition, zone_summary
+
+    return {"name": s.name, "category": s.category, "split": s.split or "train",
+            "allies": len(s.allies), "enemies": len(s.enemies), "zones": len(s.zones),
+            "units_text": (f"{composition(s.allies)} vs {composition(s.enemies)}"
+                           if s.units else "-"),
+            "zones_text": zone_summary(s), "description": s.description or "",
+            "arena": list(s.arena)}
+
+
+@functools.lru_cache(maxsize=1)
+def _bundled_entries() -> tuple[dict[str, Any], ...]:
+    """Summaries of every bundled scenario (they never change while the server runs)."""
+    entries = []
+    for name in list_scenarios(include_user=False):
+        entry = _summary(load_named(name))
+        entry.update(source="bundled", category=bundled_category(name) or entry["category"])
+        entries.append(entry)
+    return tuple(entries)
+
+
+def user_files() -> dict[str, Path]:
+    """name -> file of every user scenario: the folder itself (as `load_named` reads it), then
+    the category folders this editor saves into. The first file of a name wins."""
+    root = user_scenario_dir()
+    found: dict[str, Path] = {}
+    for folder in (root, *(root / f for f in USER_FOLDERS.values())):
+        if folder.is_dir():
+            for path in sorted(folder.glob("*.json")):
+                found.setdefault(path.stem, path)
+    return found
+
+
+def units_info() -> dict[str, Any]:
+    """Everything the palette and the property panel need; the one source of the ranges."""
+    from tabx.params import HEURISTIC_TIERS, PHYSICS_PRESETS
+
+    units = []
+    for index, spec in enumerate(C.UNIT_SPECS):
+        stats = {k: getattr(spec, k) for k in UNIT_STAT_RANGES if k != "max_health"}
+        stats["max_health"] = spec.health
+        stats["heals"] = spec.heals
+        units.append({"name": spec.name, "char": spec.char, "index": index, "space": spec.space,
+                      "stats": stats})
+    return {
+        "format": FORMAT,
+        "units": units,
+        "stat_ranges": {k: _range(r) for k, r in UNIT_STAT_RANGES.items()},
+        "stat_order": [*UNIT_STAT_RANGES, "heals"],
+        "zone_types": list(ZONE_TYPES),
+        "zone_effect_ranges": {k: _range(r) for k, r in ZONE_EFFECT_RANGES.items()},
+        "zone_effect_defaults": {"lava": 10.0, "bush": 0.0, "swamp": 0.5},
+        "arena_range": _range(ARENA_RANGE),
+        "semi_axis_range": _range(SEMI_AXIS_RANGE),
+        "heading_range": _range(HEADING_RANGE),
+        "physics_ranges": {k: _range(r) for k, r in PHYSICS_RANGES.items()},
+        "heuristic_ranges": {k: _range(r) for k, r in HEURISTIC_RANGES.items()},
+        "physics_presets": list(PHYSICS_PRESETS),
+        "tiers": list(HEURISTIC_TIERS),
+        "categories": list(CATEGORIES),
+        "user_folders": USER_FOLDERS,
+        "name_pattern": NAME_PATTERN.pattern,
+        "arena_default": [C.ARENA_WIDTH, C.ARENA_HEIGHT],
+        "grid_default": GRID_DEFAULTS,
+        "max_preview_steps": _preview_module().MAX_PREVIEW_STEPS,
+        "pi": math.pi,
+    }
+
+
+def _preview_module():
+    from tabx.editor import preview
+
+    return preview
+
+
+class EditorApp:
+    """The API's logic, independent of HTTP (the handler maps routes onto these methods)."""
+
+    def __init__(self, initial: Scenario | None = None) -> None:
+        self.initial = initial
+        self._save_lock = threading.Lock()
+
+    # --- GET -------------------------------------------------------------------------------
+
+    def session(self) -> dict[str, Any]:
+        return {"initial": self.initial.to_dict() if self.initial is not None else None,
+                "user_dir": str(user_scenario_dir())}
+
+    def units(self) -> dict[str, Any]:
+        return units_info()
+
+    def scenarios(self) -> dict[str, Any]:
+        """Bundled and user scenarios; an unreadable user file is listed with its error."""
+        items = [dict(e) for e in _bundled_entries()]
+        bundled = {e["name"] for e in items}
+        root = user_scenario_dir()
+        for name, path in user_files().items():
+            if name in bundled:
+                continue  # the bundled one wins on load: never offer the shadowed file
+            rel = str(path.relative_to(root)) if path.is_relative_to(root) else str(path)
+            try:
+                entry = _summary(load_file(path, name=name))
+                entry["name"] = name
+            except ScenarioError as err:
+                entry = {"name": name, "category": "user", "split": "train", "allies": 0,
+                         "enemies": 0, "zones": 0, "units_text": "", "zones_text": "",
+                         "description": "", "error": str(err)}
+            entry.update(source="user", file=rel)
+            items.append(entry)
+        order = {c: i for i, c in enumerate(CATEGORIES)}
+        items.sort(key=lambda e: (order.get(e["category"], 9), e["name"].lower()))
+        return {"scenarios": items, "user_dir": str(root)}
+
+    def scenario(self, name: Any) -> dict[str, Any]:
+        """One scenario by name. Paths are refused: the page only ever names scenarios."""
+        if not isinstance(name, str) or not name:
+            raise EditorError(400, "expected ?name=NAME", "name")
+        if "/" in name or "\\" in name or name.endswith(".json") or "\0" in name:
+            raise EditorError(400, "expected a scenario name, not a path", "name")
+        try:
+            source = "bundled"
+            if bundled_category(name) is None:
+                path = user_files().get(name)
+                if path is not None:
+                    return {"scenario": load_file(path, name=name).to_dict(), "source": "user",
+                            "file": str(path)}
+                source = "composed"
+            return {"scenario": load_named(name).to_dict(), "source": source}
+        except ScenarioError as err:
+            raise _scenario_error(err, 404 if "unknown" in err.message else 400) from None
+
+    # --- POST ------------------------------------------------------------------------------
+
+    @staticmethod
+    def parse_scenario(body: Any) -> Scenario:
+        if not isinstance(body, dict) or "scenario" not in body:
+            raise EditorError(400, "expected a JSON object with a 'scenario' key")
+        try:
+            return Scenario.from_dict(body["scenario"])
+        except ScenarioError as err:
+            raise _scenario_error(err) from None
+
+    def validate(self, body: Any) -> dict[str, Any]:
+        """200 either way: {ok: true, summary} or {ok: false, error}."""
+        try:
+            scenario = self.parse_scenario(body)
+        except EditorError as err:
+            return err.payload()
+        summary = _summary(scenario)
+        warnings = []
+        if not scenario.units and not scenario.zones:
+            warnings.append("empty")
+        elif not scenario.units:
+            warnings.append("zones only: compose it with a unit scenario to play")
+        return {"ok": True, "summary": summary, "warnings": warnings}
+
+    def save(self, body: Any) -> dict[str, Any]:
+        if not isinstance(body, dict):
+            raise EditorError(400, "expected a JSON object")
+        name, category = body.get("name"), body.get("category")
+        overwrite = body.get("overwrite", False)
+        if not isinstance(name, str) or "/" in name or "\\" in name or not NAME_PATTERN.match(
+                name):
+            raise EditorError(400, "expected 1-100 characters from A-Z a-z 0-9 _ . -, starting "
+                              f"with a letter or digit (no path separators); got {name!r}",
+                              "name")
+        if category not in USER_FOLDERS:
+            raise EditorError(400, f"expected one of {', '.join(USER_FOLDERS)}; got {category!r}",
+                              "category")
+        if not isinstance(overwrite, bool):
+            raise EditorError(400, "expected true or false", "overwrite")
+        data = body.get("scenario")
+        if isinstance(data, dict):
+            data = {**data, "name": name, "category": category}
+        scenario = self.parse_scenario({"scenario": data})
+        if bundled_category(name) is not None:
+            raise EditorError(400, f"{name!r} is a bundled scenario: a user file with this name "
+                              "would never load by name; choose another name", "name")
+        root = user_scenario_dir()
+        path = root / USER_FOLDERS[category] / f"{name}.json"
+        resolved_root = root.expanduser().resolve()
+        if not path.resolve().is_relative_to(resolved_root):  # belt and braces
+            raise EditorError(400, "the file would land outside the user scenario folder", "name")
+        with self._save_lock:
+            other = user_files().get(name)
+            if other is not None and other.resolve() != path.resolve():
+                raise EditorError(409, f"a user scenario {name!r} already exists in "
+                                  f"{other.parent}; choose another name or save it in that "
+                                  "category", "name", exists=True, file=str(other),
+                                  can_overwrite=False)
+            if path.exists() and not overwrite:
+                raise EditorError(409, f"{path} exists; save again with overwrite to replace it",
+                                  "name", exists=True, file=str(path), can_overwrite=True)
+            atomic_write_text(path, dumps_scenario(scenario))
+        return {"ok": True, "path": str(path), "name": name, "category": category,
+                "summary": _summary(scenario)}
+
+    def preview(self, body: Any) -> dict[str, Any]:
+        scenario = self.parse_scenario(body)
+        preview = _preview_module()
+        try:
+            return preview.run_preview(scenario, body.get("steps", 256),
+                                       body.get("ally", "heuristic:medium"),
+                                       body.get("enemy", "heuristic:medium"),
+                                       body.get("seed", 0))
+        except ScenarioError as err:
+            raise _scenario_error(err) from None
+
+
+class _Handler(BaseHTTPRequestHandler):
+    server: EditorServer
+    protocol_version = "HTTP/1.1"
+    server_version = "tabx-editor"
+
+    # --- plumbing --------------------------------------------------------------------------
+
+    def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 (stdlib signature)
+        if self.server.verbose:
+            super().log_message(format, *args)
+
+    def _send(self, status: int, body: bytes, content_type: str, cache: str = "no-store") -> None:
+        self.send_response(status)
+        self.send_header("Content-Type", content_type)
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Cache-Control", cache)
+        self.send_header("X-Content-Type-Options", "nosniff")
+        self.send_header("Content-Security-Policy", CSP)
+        self.end_headers()
+        if self.command != "HEAD":
+            self.wfile.write(body)
+
+    def _json(self, status: int, obj: Any) -> None:
+        self._send(status, json.dumps(obj, allow_nan=False).encode("utf-8"),
+                   "application/json; charset=utf-8")
+
+    def _host_ok(self) -> bool:
+        host = (self.headers.get("Host") or "").lower()
+        port = self.server.server_address[1]
+        return host in {f"127.0.0.1:{port}", f"localhost:{port}"}
+
+    def _guarded(self, action) -> None:
+        if not self._host_ok():
+            self._json(403, EditorError(403, "unexpected Host header").payload())
+            return
+        try:
+            action()
+        except EditorError as err:
+            self._json(err.status, err.payload())
+        except Exception as err:  # a bug: report it to the page instead of hanging up
+            self.log_error("internal error: %r", err)
+            self._json(500, EditorError(500, f"internal error: {type(err).__name__}: {err}")
+                       .payload())
+
+    # --- routes ----------------------------------------------------------------------------
+
+    def do_HEAD(self) -> None:  # noqa: N802 (stdlib name)
+        self.do_GET()
+
+    def do_GET(self) -> None:  # noqa: N802 (stdlib name)
+        self._guarded(self._get)
+
+    def do_POST(self) -> None:  # noqa: N802 (stdlib name)
+        self._guarded(self._post)
+
+    def _get(self) -> None:
+        url = urlsplit(self.path)
+        app = self.server.app
+        if url.path in ("/", "/index.html"):
+            self._static("index.html")
+        elif url.path.startswith("/static/"):
+            self._static(url.path[len("/static/"):])
+        elif url.path == "/api/units":
+            self._json(200, app.units())
+        elif url.path == "/api/session":
+            self._json(200, app.session())
+        elif url.path == "/api/scenarios":
+            self._json(200, app.scenarios())
+        elif url.path == "/api/scenario":
+            name = parse_qs(url.query).get("name", [""])[0]
+            self._json(200, app.scenario(name))
+        else:
+            raise EditorError(404, f"no such page: {url.path}")
+
+    def _post(self) -> None:
+        url = urlsplit(self.path)
+        routes = {"/api/validate": "validate", "/api/save": "save", "/api/preview": "preview"}
+        if url.path not in routes:
+            raise EditorError(404, f"no such API: {url.path}")
+        ctype = (self.headers.get("Content-Type") or "").split(";")[0].strip().lower()
+        if ctype != "application/json":
+            raise EditorError(415, "expected Content-Type: application/json")
+        try:
+            length = int(self.headers.get("Content-Length") or 0)
+        except ValueError:
+            raise EditorError(400, "bad Content-Length") from None
+        if length > MAX_BODY:
+            raise EditorError(413, f"request body over {MAX_BODY} bytes")
+        raw = self.rfile.read(length)
+        try:
+            body = json.loads(raw.decode("utf-8"), parse_constant=_no_constant)
+        except (UnicodeDecodeError, ValueError) as err:
+            raise EditorError(400, f"invalid JSON: {err}") from None
+        self._json(200, getattr(self.server.app, routes[url.path])(body))
+
+    def _static(self, name: str) -> None:
+        suffix = name[name.rfind("."):] if "." in name else ""
+        if not STATIC_NAME.match(name):
+            raise EditorError(404, f"no such file: {name}")
+        entry = resources.files("tabx.editor") / "static" / name
+        if not entry.is_file():
+            raise EditorError(404, f"no such file: {name}")
+        self._send(200, entry.read_bytes(), STATIC_TYPES[suffix], cache="no-cache")
+
+
+def _no_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not allowed (numbers must be finite)")
+
+
+class EditorServer(ThreadingHTTPServer):
+    """The editor's HTTP server; `url` is its address, `app` the API logic."""
+
+    daemon_threads = True
+    allow_reuse_address = True
+
+    def __init__(self, port: int = 0, app: EditorApp | None = None, verbose: bool = False
+                 ) -> None:
+        self.app = app if app is not None else EditorApp()
+        self.verbose = verbose
+        super().__init__((HOST, port), _Handler)
+
+    @property
+    def url(self) -> str:
+        return f"http://{HOST}:{self.server_address[1]}/"
+
+
+def make_server(port: int = 0, initial: Scenario | None = None, verbose: bool = False
+                ) -> EditorServer:
+    """An editor server on 127.0.0.1:`port` (0: a free port); call `serve_forever()`."""
+    return EditorServer(port, EditorApp(initial), verbose)
+
+
+__all__ = ["EditorApp", "EditorError", "EditorServer", "USER_FOLDERS", "make_server",
+           "units_info", "user_files"]

@@ -1,0 +1,197 @@
+"""The role-appropriate scripted policy (paper section 4.2 and appendix A.7), for every unit slot.
+
+One pure, jittable function computes an action for every unit of both teams from what each
+unit can see: the living units in its (team-shared, bush-filtered) field of view, their
+positions, headings, radii, health and max health, which of them it can hit now, its own state,
+the zones, and its memory. Nothing hidden is read. Every rule is an (N, N) or (N, Z) array
+operation: there is no loop or branch per unit.
+
+Roles come from unit stats and the team's `HeuristicParams` (data in the level, so changing
+tier never recompiles): assassin = speed >= assassin_speed, ranger = attack range >=
+ranger_attack_range, healer = negative damage. Roles overlap.
+
+Pipeline per unit:
+1. candidates: healers the visible injured allies (else all visible allies); the others the
+   visible enemies; assassins keep those of lowest max health (nearest on ties);
+2. a move point per candidate: behind it (assassins), on it (healers), in front of it (others);
+   the target is the candidate with the nearest move point;
+3. priority, highest first: ATTACK (a candidate is attackable and the cooldown is ready);
+   TURN toward the target if turning would make it attackable; ranger KITE (retreat from a
+   candidate closer than attack range x threshold); MOVE to the target's move point; PURSUE the
+   remembered last position of the target (face it, then move); rangers SEEK the nearest bush;
+   SEARCH by rotating (a direction that reverses at random: the paper's stochastic search);
+4. epsilon override: with probability epsilon, a uniformly random legal action.
+
+Differences from the reference code (docs/differences.md): the turn prediction uses the real
+sight angle and target radius; the search rotation is stochastic (paper) not always right;
+kiting measures the distance to the threatening unit itself; the epsilon draw and the random
+action use independent randomness and the random action is any legal one; memory is forgotten
+when the spot is reached within one move, or a corpse lies there.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from tabx import constants as C
+from tabx.geometry import in_ellipses, pairwise_offsets
+from tabx.observe import action_mask, cooldown_ready, pick_legal
+from tabx.params import EnvParams
+from tabx.state import EnvState
+
+# Probability per step that a searching unit reverses its rotation. One full turn takes
+# 2 pi / (turn_rate dt) = 24 steps at the default dt, so a reversal comes about once a sweep.
+SEARCH_REVERSE_PROB = 0.05
+# Max-health tolerance of the assassin's "lowest max health" (the reference's 0.01).
+ASSASSIN_HP_TOLERANCE = 0.01
+
+_MOVE_ACTIONS = jnp.asarray([[C.LEFT, C.RIGHT], [C.DOWN, C.UP]], jnp.int32)
+
+
+def _toward(v: jax.Array) -> jax.Array:
+    """(N,) world-frame move along the dominant axis of v (N, 2), toward its sign."""
+    horizontal = jnp.abs(v[:, 0]) >= jnp.abs(v[:, 1])
+    x_move = jnp.where(v[:, 0] > 0, C.RIGHT, C.LEFT)
+    y_move = jnp.where(v[:, 1] > 0, C.UP, C.DOWN)
+    return jnp.where(horizontal, x_move, y_move).astype(jnp.int32)
+
+
+def _wrap(angle: jax.Array) -> jax.Array:
+    """Angle to (-pi, pi]."""
+    return jnp.pi - jnp.mod(jnp.pi - angle, 2 * jnp.pi)
+
+
+def _turn_toward(angle: jax.Array) -> jax.Array:
+    return jnp.where(angle > 0, C.TURN_LEFT, C.TURN_RIGHT).astype(jnp.int32)
+
+
+def unit_roles(params: EnvParams) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """(assassin, ranger, healer) bool (N,) from unit stats and each team's thresholds."""
+    u, h = params.units, params.heuristic
+    assassin = u.speed >= h.assassin_speed[u.team]
+    ranger = u.attack_range >= h.ranger_attack_range[u.team]
+    return assassin, ranger, u.heals.astype(bool)
+
+
+def heuristic_actions(key: jax.Array, state: EnvState, params: EnvParams
+                      ) -> tuple[jax.Array, EnvState]:
+    """(actions (N,), state with updated memory) of the scripted policy for every unit slot.
+
+    Single environment; vmap over envs. Dead and padded slots IDLE. Apply the returned state's
+    memory by stepping *that* state (its other fields are unchanged).
+    """
+    u, h, z = params.units, params.heuristic, params.zones
+    n = u.team.shape[0]
+    team = u.team
+    position = state.position
+    assassin, ranger, healer = unit_roles(params)
+    epsilon = h.epsilon[team]
+    threshold = jnp.where(healer, h.healer_aggressive_threshold[team],
+                          h.aggressive_threshold[team])
+    step_angle = params.physics.turn_rate * params.physics.dt
+
+    # 1. Candidates: what the unit sees, alive, not itself.
+    rel = pairwise_offsets(position)  # rel[i, j] = p_j - p_i
+    same_team = team[:, None] == team[None, :]
+    seen = state.visible & state.alive[None, :] & ~jnp.eye(n, dtype=bool)
+    allies_seen = seen & same_team
+    injured = allies_seen & (state.health < u.max_health - 1e-6)[None, :]
+    healer_set = jnp.where(jnp.any(injured, -1, keepdims=True), injured, allies_seen)
+    candidates = jnp.where(healer[:, None], healer_set, seen & ~same_team)
+    has_target = jnp.any(candidates, -1)
+    lowest_hp = jnp.min(jnp.where(candidates, u.max_health[None, :], jnp.inf), -1)
+    weakest = u.max_health[None, :] <= lowest_hp[:, None] + ASSASSIN_HP_TOLERANCE
+    choosable = jnp.where((assassin & ~healer)[:, None], candidates & weakest, candidates)
+
+    # 2. Move points and the target: behind (assassins), on (healers), in front (others).
+    side = jnp.where(assassin, -1.0, jnp.where(healer, 0.0, 1.0))
+    reach = (u.radius[None, :] + u.radius[:, None]) * side[:, None]  # (N, N)
+    move_point = rel + state.facing[None, :, :] * reach[..., None]
+    target = jnp.argmin(jnp.where(choosable, jnp.sum(move_point**2, -1), jnp.inf), -1)
+    rows = jnp.arange(n)
+    target_move = move_point[rows, target]  # (N, 2)
+    target_rel = rel[rows, target]
+
+    # 3a. Attack: a candidate is attackable now and the cooldown is ready.
+    ready = cooldown_ready(state.cooldown, u.cooldown)
+    attack = jnp.any(candidates & state.attackable, -1) & ready
+
+    # 3b. Turn to engage: would the turns that face the target bring it into the hurtbox?
+    heading = state.heading
+    angle = _wrap(jnp.arctan2(target_rel[:, 1], target_rel[:, 0]) - heading)
+    turns = jnp.rint(angle / step_angle)
+    predicted = heading + turns * step_angle
+    cos_p, sin_p = jnp.cos(predicted), jnp.sin(predicted)
+    local_x = cos_p * target_rel[:, 0] + sin_p * target_rel[:, 1]
+    local_y = -sin_p * target_rel[:, 0] + cos_p * target_rel[:, 1]
+    half = 0.5 * u.sight_angle
+    x0 = u.radius * jnp.cos(half)
+    gap_x = jnp.maximum(jnp.maximum(x0 - local_x, local_x - (x0 + u.attack_range)), 0.0)
+    gap_y = jnp.maximum(jnp.abs(local_y) - u.radius * jnp.sin(half), 0.0)
+    would_hit = gap_x**2 + gap_y**2 < u.radius[target] ** 2
+    rotate = has_target & ~state.attackable[rows, target] & would_hit & (turns != 0)
+
+    # 3c. Kite: a ranger retreats from the nearest candidate inside range x threshold.
+    dist2 = jnp.sum(rel * rel, -1)
+    threat_dist2 = jnp.where(candidates, dist2, jnp.inf)
+    threat = jnp.argmin(threat_dist2, -1)
+    kite = ranger & (threat_dist2[rows, threat] < (u.attack_range * threshold) ** 2)
+    kite_move = _toward(-rel[rows, threat])
+
+    # 3d-e. Pursue the remembered spot: face it, then move to it. The memory is forgotten once
+    # the unit is within one move of the spot on both axes, or a visible corpse lies on it.
+    memory_rel = state.memory_position - position
+    step_len = u.speed * params.physics.dt
+    reached = jnp.sum(memory_rel**2, -1) < 2.0 * step_len**2
+    corpse = state.visible & (u.active.astype(bool) & ~state.alive)[None, :]
+    to_spot = position[None, :, :] - state.memory_position[:, None, :]  # (N, N, 2)
+    on_spot = jnp.sum(to_spot**2, -1) <= jnp.square(u.radius)[None, :]
+    keep_memory = state.memory_valid & ~reached & ~jnp.any(corpse & on_spot, -1)
+    memory_angle = _wrap(jnp.arctan2(memory_rel[:, 1], memory_rel[:, 0]) - heading)
+    pursue = jnp.where(jnp.abs(memory_angle) <= step_angle, _toward(memory_rel),
+                       _turn_toward(memory_angle))
+
+    # 3f. Rangers seek the nearest bush they are not in (a config without zone slots has none).
+    if z.zone_type.shape[-1] > 0:
+        bush = z.zone_type == C.ZONE_BUSH
+        bush_rel = z.centre[None, :, :] - position[:, None, :]  # (N, Z, 2)
+        bush_dist2 = jnp.where(bush[None, :], jnp.sum(bush_rel**2, -1), jnp.inf)
+        nearest_bush = jnp.argmin(bush_dist2, -1)
+        in_bush = jnp.any(in_ellipses(position, z.centre, z.semi_axes, z.zone_type)
+                          & bush[None, :], -1)
+        seek_bush = ranger & jnp.any(bush) & ~in_bush
+        bush_move = _toward(bush_rel[rows, nearest_bush])
+    else:
+        seek_bush, bush_move = jnp.zeros(n, bool), jnp.zeros(n, jnp.int32)
+
+    # Randomness: epsilon draw, random action and search reversal, from one draw.
+    draws = jax.random.uniform(key, (3, n))
+    reverse = draws[2] < SEARCH_REVERSE_PROB
+    search_turn = jnp.where(reverse, C.TURN_LEFT + C.TURN_RIGHT - state.search_turn,
+                            state.search_turn).astype(jnp.int32)
+
+    action = search_turn
+    action = jnp.where(seek_bush, bush_move, action)
+    action = jnp.where(keep_memory, pursue, action)
+    action = jnp.where(has_target, _toward(target_move), action)
+    action = jnp.where(has_target & kite, kite_move, action)
+    action = jnp.where(rotate, _turn_toward(angle), action)
+    action = jnp.where(attack, C.ATTACK, action)
+
+    # 4. Epsilon override with a uniform legal action; the dead and padding idle.
+    mask = action_mask(state, params)
+    action = jnp.where(draws[0] < epsilon, pick_legal(draws[1], mask), action)
+    action = jnp.where(state.alive, action, C.IDLE).astype(jnp.int32)
+
+    # Memory: the chosen target's position while it is seen.
+    memory_valid = has_target | keep_memory
+    memory_position = jnp.where(has_target[:, None], position + target_rel,
+                                state.memory_position)
+    memory_valid = memory_valid & state.alive
+    new_state = state.replace(memory_position=memory_position, memory_valid=memory_valid,
+                              search_turn=search_turn)
+    return action, new_state
+
+
+__all__ = ["heuristic_actions", "unit_roles", "SEARCH_REVERSE_PROB"]
