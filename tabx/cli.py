@@ -17,6 +17,7 @@ REGISTRARS = (
     "tabx.bench",  # tabx bench env
     "level_buffer.cli",  # tabx buffer ...
     "tabx.editor.cli",  # tabx editor
+    "ued.cli",  # tabx train, tabx eval
 )
 
 

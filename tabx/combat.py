@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 
 from tabx.geometry import hurtbox_overlap
+from tabx.selection import row_argmin
 
 
 def attack_targets(rel: jax.Array, trig: jax.Array, radius: jax.Array,
@@ -30,8 +31,8 @@ def attack_targets(rel: jax.Array, trig: jax.Array, radius: jax.Array,
     # Materialise once: the target choice and has_target would each re-derive it otherwise.
     attackable = jax.lax.optimization_barrier(attackable)
     dist2 = jnp.sum(rel * rel, -1)
-    target = jnp.argmin(jnp.where(attackable, dist2, jnp.inf), axis=-1).astype(jnp.int32)
-    return attackable, target, jnp.any(attackable, axis=-1)
+    target, _, has_target = row_argmin(dist2, attackable)
+    return attackable, target, has_target
 
 
 def resolve_attacks(attacking: jax.Array, has_target: jax.Array, target: jax.Array,

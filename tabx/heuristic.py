@@ -38,6 +38,7 @@ from tabx import constants as C
 from tabx.geometry import in_ellipses, pairwise_offsets
 from tabx.observe import action_mask, cooldown_ready, pick_legal
 from tabx.params import EnvParams
+from tabx.selection import pick_row, row_argmin
 from tabx.state import EnvState
 
 # Probability per step that a searching unit reverses its rotation. One full turn takes
@@ -69,9 +70,14 @@ def _turn_toward(angle: jax.Array) -> jax.Array:
 def unit_roles(params: EnvParams) -> tuple[jax.Array, jax.Array, jax.Array]:
     """(assassin, ranger, healer) bool (N,) from unit stats and each team's thresholds."""
     u, h = params.units, params.heuristic
-    assassin = u.speed >= h.assassin_speed[u.team]
-    ranger = u.attack_range >= h.ranger_attack_range[u.team]
+    assassin = u.speed >= _per_team(h.assassin_speed, u.team)
+    ranger = u.attack_range >= _per_team(h.ranger_attack_range, u.team)
     return assassin, ranger, u.heals.astype(bool)
+
+
+def _per_team(value: jax.Array, team: jax.Array) -> jax.Array:
+    """value[team] for a (2,) per-team parameter, as a select (a gather is slow under vmap)."""
+    return jnp.where(team == C.ALLY, value[C.ALLY], value[C.ENEMY])
 
 
 def heuristic_actions(key: jax.Array, state: EnvState, params: EnvParams
@@ -86,9 +92,9 @@ def heuristic_actions(key: jax.Array, state: EnvState, params: EnvParams
     team = u.team
     position = state.position
     assassin, ranger, healer = unit_roles(params)
-    epsilon = h.epsilon[team]
-    threshold = jnp.where(healer, h.healer_aggressive_threshold[team],
-                          h.aggressive_threshold[team])
+    epsilon = _per_team(h.epsilon, team)
+    threshold = jnp.where(healer, _per_team(h.healer_aggressive_threshold, team),
+                          _per_team(h.aggressive_threshold, team))
     step_angle = params.physics.turn_rate * params.physics.dt
 
     # 1. Candidates: what the unit sees, alive, not itself.
@@ -108,10 +114,9 @@ def heuristic_actions(key: jax.Array, state: EnvState, params: EnvParams
     side = jnp.where(assassin, -1.0, jnp.where(healer, 0.0, 1.0))
     reach = (u.radius[None, :] + u.radius[:, None]) * side[:, None]  # (N, N)
     move_point = rel + state.facing[None, :, :] * reach[..., None]
-    target = jnp.argmin(jnp.where(choosable, jnp.sum(move_point**2, -1), jnp.inf), -1)
-    rows = jnp.arange(n)
-    target_move = move_point[rows, target]  # (N, 2)
-    target_rel = rel[rows, target]
+    _, chosen, _ = row_argmin(jnp.sum(move_point**2, -1), choosable)  # one-hot (N, N)
+    target_move = pick_row(move_point, chosen)  # (N, 2)
+    target_rel = pick_row(rel, chosen)
 
     # 3a. Attack: a candidate is attackable now and the cooldown is ready.
     ready = cooldown_ready(state.cooldown, u.cooldown)
@@ -129,15 +134,15 @@ def heuristic_actions(key: jax.Array, state: EnvState, params: EnvParams
     x0 = u.radius * jnp.cos(half)
     gap_x = jnp.maximum(jnp.maximum(x0 - local_x, local_x - (x0 + u.attack_range)), 0.0)
     gap_y = jnp.maximum(jnp.abs(local_y) - u.radius * jnp.sin(half), 0.0)
-    would_hit = gap_x**2 + gap_y**2 < u.radius[target] ** 2
-    rotate = has_target & ~state.attackable[rows, target] & would_hit & (turns != 0)
+    target_radius = pick_row(jnp.broadcast_to(u.radius, (n, n)), chosen)
+    would_hit = gap_x**2 + gap_y**2 < target_radius**2
+    rotate = has_target & ~pick_row(state.attackable, chosen) & would_hit & (turns != 0)
 
     # 3c. Kite: a ranger retreats from the nearest candidate inside range x threshold.
     dist2 = jnp.sum(rel * rel, -1)
-    threat_dist2 = jnp.where(candidates, dist2, jnp.inf)
-    threat = jnp.argmin(threat_dist2, -1)
-    kite = ranger & (threat_dist2[rows, threat] < (u.attack_range * threshold) ** 2)
-    kite_move = _toward(-rel[rows, threat])
+    _, threat, threatened = row_argmin(dist2, candidates)
+    kite = ranger & threatened & (pick_row(dist2, threat) < (u.attack_range * threshold) ** 2)
+    kite_move = _toward(-pick_row(rel, threat))
 
     # 3d-e. Pursue the remembered spot: face it, then move to it. The memory is forgotten once
     # the unit is within one move of the spot on both axes, or a visible corpse lies on it.
@@ -156,18 +161,22 @@ def heuristic_actions(key: jax.Array, state: EnvState, params: EnvParams
     if z.zone_type.shape[-1] > 0:
         bush = z.zone_type == C.ZONE_BUSH
         bush_rel = z.centre[None, :, :] - position[:, None, :]  # (N, Z, 2)
-        bush_dist2 = jnp.where(bush[None, :], jnp.sum(bush_rel**2, -1), jnp.inf)
-        nearest_bush = jnp.argmin(bush_dist2, -1)
+        _, nearest_bush, _ = row_argmin(jnp.sum(bush_rel**2, -1),
+                                        jnp.broadcast_to(bush[None, :], (n, bush.shape[0])))
         in_bush = jnp.any(in_ellipses(position, z.centre, z.semi_axes, z.zone_type)
                           & bush[None, :], -1)
         seek_bush = ranger & jnp.any(bush) & ~in_bush
-        bush_move = _toward(bush_rel[rows, nearest_bush])
+        bush_move = _toward(pick_row(bush_rel, nearest_bush))
     else:
         seek_bush, bush_move = jnp.zeros(n, bool), jnp.zeros(n, jnp.int32)
 
-    # Randomness: epsilon draw, random action and search reversal, from one draw.
-    draws = jax.random.uniform(key, (3, n))
-    reverse = draws[2] < SEARCH_REVERSE_PROB
+    # Randomness: one 32-bit draw per unit split into the epsilon draw (12 bits), the random
+    # action (10 bits) and the search reversal (10 bits): a third of the threefry work.
+    bits = jax.random.bits(key, (n,), jnp.uint32)
+    draw_epsilon = (bits >> 20).astype(jnp.float32) / 4096.0
+    draw_action = ((bits >> 10) & 0x3FF).astype(jnp.float32) / 1024.0
+    draw_reverse = (bits & 0x3FF).astype(jnp.float32) / 1024.0
+    reverse = draw_reverse < SEARCH_REVERSE_PROB
     search_turn = jnp.where(reverse, C.TURN_LEFT + C.TURN_RIGHT - state.search_turn,
                             state.search_turn).astype(jnp.int32)
 
@@ -181,7 +190,7 @@ def heuristic_actions(key: jax.Array, state: EnvState, params: EnvParams
 
     # 4. Epsilon override with a uniform legal action; the dead and padding idle.
     mask = action_mask(state, params)
-    action = jnp.where(draws[0] < epsilon, pick_legal(draws[1], mask), action)
+    action = jnp.where(draw_epsilon < epsilon, pick_legal(draw_action, mask), action)
     action = jnp.where(state.alive, action, C.IDLE).astype(jnp.int32)
 
     # Memory: the chosen target's position while it is seen.

@@ -142,7 +142,12 @@ def pick_legal(uniform: jax.Array, mask: jax.Array) -> jax.Array:
     """The legal action of a (..., 8) bool mask picked by `uniform` in [0, 1) (same leading
     shape): uniform over the legal actions. One draw per unit, not one per action: 8 times
     fewer random bits than Gumbel-max sampling, which matters on CPU where threefry dominates
-    a random rollout. Every row needs a legal action (IDLE always is)."""
+    a random rollout. Every row needs a legal action (IDLE always is).
+
+    The k-th legal action's index is the number of positions whose running count of legal
+    actions is at most k: plain sums (no cumsum or argmax, slow on CPU)."""
     count = jnp.sum(mask, axis=-1)
     pick = jnp.minimum(jnp.floor(uniform * count).astype(jnp.int32), count - 1)
-    return jnp.argmax(jnp.cumsum(mask, axis=-1) > pick[..., None], axis=-1).astype(jnp.int32)
+    upto = jnp.arange(mask.shape[-1])[:, None] <= jnp.arange(mask.shape[-1])[None, :]
+    running = jnp.sum(mask[..., :, None] & upto, axis=-2)  # legal actions at or before j
+    return jnp.sum(running <= pick[..., None], axis=-1).astype(jnp.int32)

@@ -312,6 +312,11 @@ def test_user_dir_and_paths(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
     assert len(load_named("2F1M2Avs2S1K_pond").zones) == 1
     # a path, in our format or the reference one
     assert load_named(str(user / "duel.json")).name == "duel"
+    # the editor's category folders are read too; the folder itself wins on a name clash
+    save_scenario(user / "challenges" / "cave.json", Scenario.from_dict({**BASE, "name": "cave"}))
+    save_scenario(user / "units" / "duel.json", Scenario.from_dict({**BASE, "name": "other"}))
+    assert "cave" in list_scenarios() and load_named("cave").name == "cave"
+    assert load_named("duel") == Scenario.from_dict(BASE)
     monkeypatch.delenv("TABX_SCENARIO_DIR")
     assert user_scenario_dir() == Path.home() / ".local/share/tabx/scenarios"
 

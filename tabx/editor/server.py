@@ -62,10 +62,9 @@ from tabx.scenarios import (
     user_scenario_dir,
 )
 from tabx.scenarios.format import HEADING_RANGE, NAME_PATTERN, SEMI_AXIS_RANGE, ZONE_TYPES
-from tabx.scenarios.registry import bundled_category
+from tabx.scenarios.registry import USER_FOLDERS, _user_files, bundled_category
 
 HOST = "127.0.0.1"
-USER_FOLDERS = {"challenge": "challenges", "units": "units", "zones": "zones", "user": "user"}
 STATIC_TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
                 ".css": "text/css; charset=utf-8", ".png": "image/png", ".svg": "image/svg+xml"}
 STATIC_NAME = re.compile(r"^[a-z0-9_\-]+\.(html|js|css|png|svg)$")
@@ -120,15 +119,8 @@ def _bundled_entries() -> tuple[dict[str, Any], ...]:
 
 
 def user_files() -> dict[str, Path]:
-    """name -> file of every user scenario: the folder itself (as `load_named` reads it), then
-    the category folders this editor saves into. The first file of a name wins."""
-    root = user_scenario_dir()
-    found: dict[str, Path] = {}
-    for folder in (root, *(root / f for f in USER_FOLDERS.values())):
-        if folder.is_dir():
-            for path in sorted(folder.glob("*.json")):
-                found.setdefault(path.stem, path)
-    return found
+    """name -> file of every user scenario (the registry's view: folder, then category folders)."""
+    return _user_files()
 
 
 def units_info() -> dict[str, Any]:

@@ -56,11 +56,20 @@ def _bundled() -> dict[str, tuple[str, Any]]:
     return index
 
 
+# Sub-folders of the user folder that hold scenarios too (the editor saves into them by category).
+USER_FOLDERS = {**BUNDLED_FOLDERS, "user": "user"}
+
+
 def _user_files() -> dict[str, Path]:
-    directory = user_scenario_dir()
-    if not directory.is_dir():
-        return {}
-    return {p.stem: p for p in sorted(directory.glob("*.json"))}
+    """name -> file of every user scenario: the folder itself, then its category sub-folders;
+    the first file of a name wins."""
+    root = user_scenario_dir()
+    found: dict[str, Path] = {}
+    for folder in (root, *(root / f for f in USER_FOLDERS.values())):
+        if folder.is_dir():
+            for path in sorted(folder.glob("*.json")):
+                found.setdefault(path.stem, path)
+    return found
 
 
 def list_scenarios(category: str | None = None, include_user: bool = True) -> list[str]:
