@@ -22,9 +22,10 @@ import jax
 import jax.numpy as jnp
 
 from tabx import constants as C
-from tabx.heuristic import heuristic_actions
+from tabx.heuristic import heuristic_actions_from_bits
 from tabx.observe import action_mask, pick_legal
 from tabx.params import HEURISTIC_TIERS, EnvParams
+from tabx.rng import random_words, to_unit_float
 from tabx.state import EnvState
 
 CONTROLLER_KINDS = ("external", "heuristic", "random", "idle")
@@ -94,12 +95,13 @@ def controlled_actions(key: jax.Array, state: EnvState, params: EnvParams,
     by_kind: dict[str, jax.Array] = {"idle": jnp.full((n,), C.IDLE, jnp.int32)}
     if external is not None:
         by_kind["external"] = jnp.asarray(external, jnp.int32)
-    key_heuristic, key_random = jax.random.split(key)
+    if "heuristic" in kinds or "random" in kinds:
+        # One draw for both controllers (tabx.rng: one threefry word, hashed per unit).
+        bits = random_words(key, (2, n))
     if "heuristic" in kinds:
-        by_kind["heuristic"], state = heuristic_actions(key_heuristic, state, params)
+        by_kind["heuristic"], state = heuristic_actions_from_bits(bits[0], state, params)
     if "random" in kinds:
-        by_kind["random"] = pick_legal(jax.random.uniform(key_random, (n,)),
-                                       action_mask(state, params))
+        by_kind["random"] = pick_legal(to_unit_float(bits[1]), action_mask(state, params))
     if kinds[0] == kinds[1]:
         return by_kind[kinds[0]], state
     return jnp.where(team == C.ALLY, by_kind[kinds[0]], by_kind[kinds[1]]), state

@@ -234,13 +234,16 @@ class TabxEnv:
 
 
 def materialise_actions(actions: jax.Array) -> jax.Array:
-    """Actions clipped to the valid range, as a reduction's output so that XLA computes them
-    once. XLA on CPU drops optimization barriers before fusing, and would otherwise fuse a
-    policy's whole per-unit computation (the scripted policy's, say) into each element of the
-    (N, N) geometry that depends on it: N times the work."""
-    slots = jnp.arange(C.NUM_ACTIONS, dtype=jnp.int32)
-    one_hot = jnp.clip(actions.astype(jnp.int32), 0, C.NUM_ACTIONS - 1)[..., None] == slots
-    return jnp.max(jnp.where(one_hot, slots, 0), axis=-1)
+    """Actions clipped to the valid range, computed once. XLA on CPU drops optimization
+    barriers before fusing, and fuses a policy's whole per-unit computation (the scripted
+    policy's, say) into every element of whatever consumes it: into each (N, N) geometry element
+    (N times the work) or each slot of a one-hot (8 times). A matrix product is never fused with
+    its operands, so multiplying by the identity makes XLA compute the actions once (exact for
+    these small integers)."""
+    ids = jnp.clip(actions.astype(jnp.int32), 0, C.NUM_ACTIONS - 1).astype(jnp.float32)
+    identity = jnp.eye(ids.shape[-1], dtype=jnp.float32)
+    product = jnp.matmul(ids, identity, precision=jax.lax.Precision.HIGHEST)
+    return jnp.rint(product).astype(jnp.int32)
 
 
 def random_legal_actions(key: jax.Array, mask: jax.Array) -> jax.Array:

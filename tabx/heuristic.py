@@ -38,6 +38,7 @@ from tabx import constants as C
 from tabx.geometry import in_ellipses, pairwise_offsets
 from tabx.observe import action_mask, cooldown_ready, pick_legal
 from tabx.params import EnvParams
+from tabx.rng import random_words
 from tabx.selection import pick_row, row_argmin
 from tabx.state import EnvState
 
@@ -87,6 +88,14 @@ def heuristic_actions(key: jax.Array, state: EnvState, params: EnvParams
     Single environment; vmap over envs. Dead and padded slots IDLE. Apply the returned state's
     memory by stepping *that* state (its other fields are unchanged).
     """
+    bits = random_words(key, state.alive.shape)
+    return heuristic_actions_from_bits(bits, state, params)
+
+
+def heuristic_actions_from_bits(bits: jax.Array, state: EnvState, params: EnvParams
+                                ) -> tuple[jax.Array, EnvState]:
+    """`heuristic_actions` with its randomness given: one uint32 (N,) word per unit slot
+    (callers that draw for several controllers at once save random-number calls)."""
     u, h, z = params.units, params.heuristic, params.zones
     n = u.team.shape[0]
     team = u.team
@@ -172,7 +181,6 @@ def heuristic_actions(key: jax.Array, state: EnvState, params: EnvParams
 
     # Randomness: one 32-bit draw per unit split into the epsilon draw (12 bits), the random
     # action (10 bits) and the search reversal (10 bits): a third of the threefry work.
-    bits = jax.random.bits(key, (n,), jnp.uint32)
     draw_epsilon = (bits >> 20).astype(jnp.float32) / 4096.0
     draw_action = ((bits >> 10) & 0x3FF).astype(jnp.float32) / 1024.0
     draw_reverse = (bits & 0x3FF).astype(jnp.float32) / 1024.0
@@ -203,4 +211,5 @@ def heuristic_actions(key: jax.Array, state: EnvState, params: EnvParams
     return action, new_state
 
 
-__all__ = ["heuristic_actions", "unit_roles", "SEARCH_REVERSE_PROB"]
+__all__ = ["heuristic_actions", "heuristic_actions_from_bits", "unit_roles",
+           "SEARCH_REVERSE_PROB"]
