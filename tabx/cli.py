@@ -12,13 +12,19 @@ import importlib
 import sys
 
 REGISTRARS = (
-    "tabx.scenarios.cli",  # tabx scenarios list|show|validate
+    "tabx.scenarios.cli",  # tabx scenarios list|show|validate|render
     "tabx.rollout",  # tabx rollout
     "tabx.bench",  # tabx bench env
     "level_buffer.cli",  # tabx buffer ...
     "tabx.editor.cli",  # tabx editor
     "ued.cli",  # tabx train, tabx eval
 )
+# Commands whose first argument is a fixed word next to a free positional of another command
+# (`tabx eval heuristics NAME` beside `tabx eval RUN_DIR`): (command, word) -> registrar module
+# whose `add_route_parser(subparsers)` adds a parser named `word` under `command`.
+ROUTES = {
+    ("eval", "heuristics"): "tabx.tournament",  # tabx eval heuristics NAME
+}
 
 
 class UserError(Exception):
@@ -42,9 +48,21 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def build_route_parser(command: str, word: str) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog=f"tabx {command}")
+    sub = parser.add_subparsers(dest="route", metavar=word)
+    sub.required = True
+    importlib.import_module(ROUTES[(command, word)]).add_route_parser(sub)
+    return parser
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if tuple(argv[:2]) in ROUTES:
+        args = build_route_parser(argv[0], argv[1]).parse_args(argv[1:])
+        args.command = argv[0]
+    else:
+        args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
     except UserError as err:

@@ -165,8 +165,8 @@ def cmd_eval_heuristics(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_heuristics_parser(sub: argparse._SubParsersAction) -> None:
-    """`heuristics` under `tabx eval`."""
+def add_route_parser(sub: argparse._SubParsersAction) -> None:
+    """`heuristics` under `tabx eval` (a route of tabx.cli)."""
     p = sub.add_parser("heuristics", help="tier-vs-tier win-rate table of the scripted policy")
     p.add_argument("name", help="scenario name, composition or file")
     p.add_argument("--episodes", type=int, default=64, help="episodes per cell (default 64)")
@@ -178,5 +178,5 @@ def add_heuristics_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_eval_heuristics)
 
 
-__all__ = ["TierTable", "make_batch_runner", "tier_table", "add_heuristics_parser"]
+__all__ = ["TierTable", "make_batch_runner", "tier_table", "add_route_parser"]
 

@@ -39,3 +39,31 @@ def test_unknown_tier_is_refused(grid):
     config, level = grid
     with pytest.raises(ValueError, match="unknown heuristic tier 'master'"):
         tier_table(config, level, episodes=1, ally_tiers=("master",))
+
+
+def test_eval_heuristics_cli_prints_the_table_and_writes_json(capsys, tmp_path):
+    import json
+
+    from tabx.cli import main
+
+    out_json = tmp_path / "t.json"
+    code = main(["eval", "heuristics", "grid", "--episodes", "256", "--tiers", "random,expert",
+                 "--json", str(out_json)])
+    out = capsys.readouterr().out
+    assert code == 0
+    assert "ally \\ enemy" in out and out.count("±") == 1 + 4  # the header, 2 x 2 cells
+    data = json.loads(out_json.read_text())
+    assert data["ally_tiers"] == ["random", "expert"] and data["episodes"] == 256
+    assert data["win_rate"][1][0] > 0.9  # expert allies v random enemies
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["eval", "heuristics", "nosuch"], "unknown scenario 'nosuch'"),
+    (["eval", "heuristics", "grid", "--tiers", "random,godlike"], "unknown tier(s) godlike"),
+    (["eval", "heuristics", "grid", "--episodes", "0"], "--episodes must be >= 1"),
+])
+def test_eval_heuristics_cli_errors(capsys, argv, message):
+    from tabx.cli import main
+
+    assert main(argv) == 2
+    assert message in capsys.readouterr().err
