@@ -195,6 +195,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                           "heuristic:medium)")
     env.add_argument("--json", help="also write results as JSON lines to this file")
     env.set_defaults(func=bench_env)
+    try:  # the learners' benchmark lives with the learners (ued/learners/bench.py)
+        from ued.learners.bench import add_train_bench
+    except ModuleNotFoundError as err:
+        if err.name is None or not "ued.learners.bench".startswith(err.name):
+            raise
+    else:
+        add_train_bench(which)
 
 
 if __name__ == "__main__":

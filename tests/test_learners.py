@@ -1,0 +1,392 @@
+"""MAPPO / IPPO learners: GAE, masking, the loss, the GRU trunk, the jitted update, configs,
+TensorBoard events, checkpoints and bit-exact resume.
+
+The update tests share one tiny learner (2 archers v 1 farmer, 4 envs x 16 steps, hidden 16),
+so the update compiles once for the whole module; `test_learners_helpers.tiny_config` is also
+used by tests/test_train_cli.py, whose runs then reuse the same compiled update.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_learners_helpers import duel_level, tiny_config, tiny_learner, tiny_levels
+
+from tabx import constants as C
+from tabx.params import EnvConfig, repeat_level, stack_levels
+from ued.config import ConfigError, PPOConfig, apply_overrides, config_from_dict, load_config
+from ued.learners import make_learner
+from ued.learners import networks as nw
+from ued.learners.ippo import IPPO
+from ued.learners.ppo import (
+    gae,
+    masked_logits,
+    policy_terms,
+    ppo_policy_loss,
+    team_mean,
+    value_loss,
+)
+
+# --- GAE -------------------------------------------------------------------------------------
+
+
+def test_gae_matches_a_hand_computation():
+    gamma, lam = 0.9, 0.8
+    rewards = np.array([1.0, 0.0, 2.0, -1.0], np.float32)[:, None]
+    values = np.array([0.5, 0.2, 0.1, 0.3], np.float32)[:, None]
+    dones = np.array([False, True, False, False])[:, None]
+    last_value = np.array([0.7], np.float32)
+    adv, targets = gae(jnp.asarray(rewards), jnp.asarray(values), jnp.asarray(dones),
+                       jnp.asarray(last_value), gamma, lam)
+    # By hand, backwards: step 3 bootstraps from last_value; step 1 ends its episode.
+    d3 = -1.0 + gamma * 0.7 - 0.3
+    a3 = d3
+    d2 = 2.0 + gamma * 0.3 - 0.1
+    a2 = d2 + gamma * lam * a3
+    d1 = 0.0 + 0.0 - 0.2  # done: no bootstrap from the next episode's first state
+    a1 = d1
+    d0 = 1.0 + gamma * 0.2 - 0.5
+    a0 = d0 + gamma * lam * a1
+    np.testing.assert_allclose(adv[:, 0], [a0, a1, a2, a3], rtol=1e-6)
+    np.testing.assert_allclose(targets[:, 0], np.array([a0, a1, a2, a3]) + values[:, 0],
+                               rtol=1e-6, atol=1e-6)
+
+
+def test_gae_broadcasts_over_envs_and_agents():
+    rng = np.random.default_rng(0)
+    r = rng.normal(size=(5, 3, 2)).astype(np.float32)
+    v = rng.normal(size=(5, 3, 2)).astype(np.float32)
+    d = rng.random((5, 3, 1)) < 0.3
+    last = rng.normal(size=(3, 2)).astype(np.float32)
+    adv, _ = gae(r, v, jnp.asarray(d), last, 0.99, 0.95)
+    for e in range(3):
+        for a in range(2):
+            one, _ = gae(r[:, e, a], v[:, e, a], jnp.asarray(d[:, e, 0]), last[e, a], 0.99, 0.95)
+            np.testing.assert_allclose(adv[:, e, a], one, rtol=1e-5, atol=1e-6)
+
+
+# --- masking and the loss terms --------------------------------------------------------------
+
+
+def test_illegal_actions_have_zero_probability_and_are_never_sampled():
+    logits = jnp.array([[5.0, 1.0, 0.0, 2.0, 9.0, 0.0, 0.0, 3.0]])
+    mask = jnp.array([[True, False, True, True, False, False, False, True]])
+    probs = jax.nn.softmax(masked_logits(logits, mask))
+    assert float(probs[0, 1]) == 0.0 and float(probs[0, 4]) == 0.0
+    samples = jax.random.categorical(jax.random.key(0), masked_logits(logits, mask),
+                                     shape=(2000, 1))
+    assert set(np.unique(np.asarray(samples))) <= {0, 2, 3, 7}
+    logp, entropy = policy_terms(logits, mask, jnp.array([3]))
+    assert np.isfinite(float(logp[0])) and float(entropy[0]) > 0
+    # A unit with IDLE as its only action: log-probability 0, entropy 0.
+    only_idle = jnp.zeros((1, 8), bool).at[0, C.IDLE].set(True)
+    logp, entropy = policy_terms(logits, only_idle, jnp.array([C.IDLE]))
+    assert float(logp[0]) == pytest.approx(0.0) and float(entropy[0]) == pytest.approx(0.0)
+
+
+def test_loss_terms_ignore_invalid_entries():
+    rng = np.random.default_rng(1)
+    logp, old, adv = (jnp.asarray(rng.normal(size=6), jnp.float32) for _ in range(3))
+    valid = jnp.array([True, True, False, True, False, True])
+    loss, _, _ = ppo_policy_loss(logp, old, adv, valid, 0.2)
+    changed = jnp.where(valid, logp, 100.0), jnp.where(valid, adv, -50.0)
+    loss2, _, _ = ppo_policy_loss(changed[0], old, changed[1], valid, 0.2)
+    assert float(loss) == pytest.approx(float(loss2))
+    v, ov, tgt = (jnp.asarray(rng.normal(size=6), jnp.float32) for _ in range(3))
+    vl = value_loss(v, ov, tgt, valid, 0.05)
+    vl2 = value_loss(jnp.where(valid, v, 9.0), ov, tgt, valid, 0.05)
+    assert float(vl) == pytest.approx(float(vl2))
+
+
+def test_value_clipping_keeps_the_larger_loss():
+    v, old, target = jnp.array([1.0]), jnp.array([0.0]), jnp.array([2.0])
+    clipped = value_loss(v, old, target, jnp.array([True]), 0.1, clip=True)
+    unclipped = value_loss(v, old, target, jnp.array([True]), 0.1, clip=False)
+    assert float(unclipped) == pytest.approx(0.5)
+    assert float(clipped) == pytest.approx(0.5 * 1.9**2)  # clipped V = 0.1
+
+
+def test_team_mean_and_ippo_dead_agent_values():
+    values = jnp.array([[1.0, 3.0, 100.0]])
+    alive = jnp.array([[True, True, False]])
+    assert float(team_mean(values, alive)[0]) == pytest.approx(2.0)
+    filled, last = IPPO.value_terms(None, values, values, alive, alive)
+    np.testing.assert_allclose(filled, [[1.0, 3.0, 2.0]])
+
+
+def test_the_loss_ignores_dead_and_padded_agents():
+    learner = tiny_learner()
+    params = learner.init(jax.random.key(0)).params
+    rng = np.random.default_rng(2)
+    t, e, a = 6, 2, learner.num_agents
+    batch = {
+        "obs": jnp.asarray(rng.normal(size=(t, e, a, learner.env_config.obs_size)), jnp.float32),
+        "world": jnp.asarray(rng.normal(size=(t, e, learner.state_dim)), jnp.float32),
+        "mask": jnp.ones((t, e, a, 8), bool),
+        "alive": jnp.asarray(np.tile([True, False], (t, e, 1))),  # agent 1 dead / padded
+        "action": jnp.asarray(rng.integers(0, 8, size=(t, e, a)), jnp.int32),
+        "logp": jnp.full((t, e, a), -2.0, jnp.float32),
+        "value": jnp.zeros((t, e), jnp.float32),
+        "adv": jnp.asarray(rng.normal(size=(t, e)), jnp.float32),
+        "targets": jnp.asarray(rng.normal(size=(t, e)), jnp.float32),
+        "starts": jnp.zeros((t, e), bool).at[0].set(True),
+    }
+    loss = jax.jit(jax.value_and_grad(learner._loss, has_aux=True))
+    (total, aux), grads = loss(params, batch)
+    # Change everything about the invalid agent except its observation (it is an input of the
+    # shared network only through its own rows): actions, old log-probabilities, masks.
+    other = dict(batch)
+    other["action"] = batch["action"].at[:, :, 1].set(3)
+    other["logp"] = batch["logp"].at[:, :, 1].set(-0.01)
+    other["mask"] = batch["mask"].at[:, :, 1, 3:].set(False)
+    (total2, aux2), grads2 = loss(params, other)
+    assert float(total) == pytest.approx(float(total2), rel=1e-6)
+    for g1, g2 in zip(jax.tree.leaves(grads), jax.tree.leaves(grads2), strict=True):
+        np.testing.assert_allclose(g1, g2, rtol=1e-5, atol=1e-7)
+    assert np.isfinite(float(total)) and float(aux["loss/entropy"]) > 0
+
+
+# --- the recurrent trunk ---------------------------------------------------------------------
+
+
+def _reference_sequence(p, x, starts, h0):
+    """Reference: the trunk step by step in a plain scan (no rematerialisation, no unrolling)."""
+    def step(h, inputs):
+        xx, s = inputs
+        h = jnp.where(s[:, None], 0.0, h)
+        e = jax.nn.relu(nw.layer_norm(p["ln_embed"], xx @ p["embed"]["w"] + p["embed"]["b"]))
+        gi = e @ p["gru"]["wi"] + p["gru"]["bi"]
+        h = nw._gates(gi, h @ p["gru"]["wh"] + p["gru"]["bh"], h)[0]
+        y = jax.nn.relu(nw.layer_norm(p["ln_hidden"], h @ p["hidden"]["w"]
+                                      + p["hidden"]["b"]))
+        return h, y @ p["out"]["w"] + p["out"]["b"]
+
+    return jax.lax.scan(step, h0, (x, starts))[1]
+
+
+def test_trunk_sequence_and_its_gradients_match_a_plain_scan():
+    p = nw.trunk_init(jax.random.key(0), 10, 16, (0.01,) * 8 + (1.0,))
+    p = jax.tree.map(lambda x: x + 0.1 * jax.random.normal(jax.random.key(9), x.shape), p)
+    x = jax.random.normal(jax.random.key(1), (7, 5, 10))
+    starts = jax.random.uniform(jax.random.key(2), (7, 5)) < 0.3
+    h0 = jax.random.normal(jax.random.key(3), (5, 16))
+
+    def loss(fn):
+        return jax.jit(jax.value_and_grad(lambda p, h: jnp.sin(fn(p, x, starts, h)).sum(),
+                                          (0, 1)))
+
+    (value, ours), (value_ref, ref) = loss(nw.sequence)(p, h0), loss(_reference_sequence)(p, h0)
+    assert float(value) == pytest.approx(float(value_ref), rel=1e-5)
+    for a, b in zip(jax.tree.leaves(ours), jax.tree.leaves(ref), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5)
+
+
+def test_hidden_state_resets_at_episode_starts():
+    p = nw.trunk_init(jax.random.key(0), 6, 8, (1.0,))
+    x = jax.random.normal(jax.random.key(1), (9, 2, 6))
+    starts = jnp.zeros((9, 2), bool).at[4, 0].set(True)
+    h0 = jax.random.normal(jax.random.key(2), (2, 8))
+    sequence = jax.jit(nw.sequence)
+    out = sequence(p, x, starts, h0)
+    # From step 4 on, env 0 behaves as a fresh sequence started there from zeros.
+    fresh = sequence(p, x[4:, :1], jnp.zeros((5, 1), bool), jnp.zeros((1, 8)))
+    np.testing.assert_allclose(out[4:, :1], fresh, atol=1e-6)
+    # Env 1 never resets: its outputs depend on h0 all along.
+    no_h0 = sequence(p, x, starts, jnp.zeros((2, 8)))
+    assert not np.allclose(out[8, 1], no_h0[8, 1])
+
+
+def test_rollout_resets_the_policy_hidden_state_when_an_episode_ends():
+    learner = tiny_learner()
+    params = learner.init(jax.random.key(0)).params
+    levels = learner.prepare_levels(tiny_levels())
+    rollout = jax.jit(learner.rollout)
+    traj, records, _, _ = rollout(params, levels, jax.random.key(3))
+    done = np.asarray(traj.done)
+    assert done.any(), "the tiny config's episodes (8 steps) must end within the rollout"
+    # Replaying the actor over the rollout with resets at episode starts reproduces the
+    # rollout's action log-probabilities exactly where the policy was sampled.
+    starts = jnp.concatenate([jnp.ones((1, done.shape[1]), bool), traj.done[:-1]], 0)
+    logits, _ = learner.evaluate_sequence(params, learner.agent_inputs(traj.obs), traj.world,
+                                          starts)
+    logp, _ = policy_terms(logits, traj.mask, traj.action)
+    np.testing.assert_allclose(logp, traj.logp, atol=1e-4)
+
+
+# --- the jitted update -----------------------------------------------------------------------
+
+
+def test_update_returns_metrics_and_rollout_stats_per_env():
+    learner = tiny_learner()
+    state = learner.init(jax.random.key(0))
+    state, metrics, stats = learner.update(state, tiny_levels(), jax.random.key(1))
+    ppo = learner.ppo
+    for field in ("values", "advantages", "dones", "rewards", "wins"):
+        assert getattr(stats, field).shape == (ppo.num_steps, ppo.num_envs)
+    assert int(state.update) == 1
+    for key in ("loss/policy", "loss/value", "loss/entropy", "episode/win_rate",
+                "episode/return", "episode/length", "episode/first_kill_rate", "grad_norm"):
+        assert key in metrics
+    assert np.isfinite(float(metrics["loss/total"]))
+    assert float(metrics["episode/count"]) == float(np.sum(stats.dones))
+    # Wins only at episode ends.
+    assert not np.any(np.asarray(stats.wins) & ~np.asarray(stats.dones))
+    from ued.scores import positive_value_loss
+
+    pvl = positive_value_loss(stats.advantages, stats.dones)
+    assert pvl.shape == (ppo.num_envs,)
+
+
+def test_new_levels_never_recompile_and_the_update_stays_on_device():
+    learner = tiny_learner()
+    state = learner.init(jax.random.key(0))
+    levels = tiny_levels()
+    state, _, _ = learner.update(state, levels, jax.random.key(1))
+    size = learner.update._cache_size()
+    # Other levels of the same EnvConfig: other positions, health, opponent tier.
+    other = stack_levels([duel_level(ally_x=-10.0 - i, farmer_health=30.0 + 10 * i)
+                          for i in range(learner.ppo.num_envs)])
+    other = jax.tree.map(jnp.asarray, other)
+    key = jax.random.key(2)
+    with jax.transfer_guard("disallow"):
+        state, metrics, _ = learner.update(state, other, key)
+    jax.block_until_ready(metrics)
+    assert learner.update._cache_size() == size
+
+
+def test_learner_plays_the_enemy_team():
+    config = tiny_config(**{"env.team": "enemy"})
+    learner = make_learner(config.algorithm, EnvConfig(max_allies=2, max_enemies=1,
+                                                       max_zones=0, max_steps=8),
+                           config.learner, "enemy", "random")
+    assert learner.slots == slice(2, 3) and learner.num_agents == 1
+    params = learner.init(jax.random.key(0)).params
+    traj, _, _, _ = jax.jit(learner.rollout)(params, learner.prepare_levels(tiny_levels()),
+                                             jax.random.key(0))
+    assert traj.obs.shape[2] == 1
+
+
+# --- configs ---------------------------------------------------------------------------------
+
+
+def test_config_defaults_are_the_papers():
+    ppo = PPOConfig()
+    assert (ppo.lr, ppo.hidden_dim, ppo.gamma, ppo.gae_lambda, ppo.clip_eps, ppo.ent_coef,
+            ppo.vf_coef, ppo.update_epochs, ppo.num_envs) == (
+        4e-3, 128, 0.99, 0.95, 0.05, 0.01, 0.5, 4, 128)
+
+
+@pytest.mark.parametrize("data, key", [
+    ({"learner": {"lrr": 0.1}}, "learner.lrr"),
+    ({"algoritm": "mappo"}, "algoritm"),
+    ({"learner": {"gamma": 1.5}}, "learner.gamma"),
+    ({"learner": {"num_envs": "many"}}, "learner.num_envs"),
+    ({"learner": {"num_envs": 10, "num_minibatches": 4}}, "learner.num_minibatches"),
+    ({"env": {"team": "blue"}}, "env.team"),
+    ({"env": {"opponent": "heuristic:godlike"}}, "env.opponent"),
+    ({"algorithm": "qmix"}, "algorithm"),
+    ({"run": {"checkpoint_every": 0}}, "run.checkpoint_every"),
+    ({"learner": {"anneal_lr": "yes"}}, "learner.anneal_lr"),
+    ({"env": ["crossfire"]}, "env"),
+])
+def test_config_errors_name_the_key(data, key):
+    with pytest.raises(ConfigError, match=rf"cfg.yaml: .*{key.replace('.', '[.]')}"):
+        config_from_dict(data, source="cfg.yaml")
+
+
+def test_config_file_overrides_and_yaml_numbers(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("algorithm: ippo\nlearner:\n  total_timesteps: 5e7\n  lr: 1e-3\n"
+                    "env:\n  scenario: [crossfire, vsrangers]\n")
+    config = load_config(path, ["learner.num_envs=64", "ent_coef=0.02", "env.team=enemy"])
+    assert config.algorithm == "ippo"
+    assert config.learner.total_timesteps == 50_000_000 and config.learner.lr == 1e-3
+    assert config.learner.num_envs == 64 and config.learner.ent_coef == 0.02
+    assert config.env.scenario == ("crossfire", "vsrangers") and config.env.team == "enemy"
+    assert load_config(path).to_dict()["env"]["scenario"] == ["crossfire", "vsrangers"]
+    with pytest.raises(ConfigError, match="unknown key 'lrate'"):
+        apply_overrides({}, ["lrate=1"])
+    with pytest.raises(ConfigError, match="learner.lrr.*did you mean 'lr'"):
+        load_config(path, ["learner.lrr=1"])
+    with pytest.raises(ConfigError, match="KEY=VALUE"):
+        apply_overrides({}, ["=3"])
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_config(tmp_path / "missing.yaml")
+
+
+def test_every_bundled_config_loads():
+    from pathlib import Path
+
+    folder = Path(__file__).resolve().parent.parent / "configs" / "marl"
+    files = sorted(folder.glob("*.yaml"))
+    assert len(files) >= 16
+    for path in files:
+        config = load_config(path)
+        assert path.stem == f"{config.algorithm}_{config.env.scenario[0]}"
+        assert config.env.opponent == "heuristic:medium"
+
+
+# --- TensorBoard -----------------------------------------------------------------------------
+
+
+def test_tensorboard_events_are_readable(tmp_path):
+    from tensorboard.backend.event_processing import event_accumulator
+
+    from ued.tensorboard import SummaryWriter, read_scalars
+
+    with SummaryWriter(tmp_path) as writer:
+        writer.scalars({"episode/win_rate": 0.25, "loss/value": 1.5, "skip": float("nan")}, 10)
+        writer.scalar("episode/win_rate", 0.5, 20)
+    scalars = read_scalars(tmp_path)
+    assert scalars["episode/win_rate"] == [(10, 0.25), (20, 0.5)]
+    assert "skip" not in scalars
+    acc = event_accumulator.EventAccumulator(str(tmp_path))
+    acc.Reload()
+    assert [(e.step, e.value) for e in acc.Scalars("loss/value")] == [(10, 1.5)]
+
+
+# --- checkpoints and resume ------------------------------------------------------------------
+
+
+def test_resume_continues_bit_for_bit(tmp_path):
+    from ued.checkpoint import Checkpoints
+    from ued.train import CHECKPOINT_DIR, learner_for, train
+
+    config = tiny_config(**{"run.checkpoint_every": 2})  # 4 updates; checkpoints at 2, 4
+    full = train(config, run_dir=tmp_path / "full", progress=False)
+    part = train(config, run_dir=tmp_path / "part", progress=False, max_updates=3)  # "killed"
+    with Checkpoints(part / CHECKPOINT_DIR) as ck:
+        assert ck.latest() == 3  # the last update of a call always saves
+    # Forget update 3 to resume from a checkpoint in the middle, as after a crash.
+    import shutil
+
+    shutil.rmtree(part / CHECKPOINT_DIR / "3")
+    learner = learner_for(config)
+    compiled = learner.update._cache_size()
+    train(run_dir=part, resume=True, progress=False)
+    assert learner.update._cache_size() == compiled  # the resumed run reuses the compilation
+    template = learner.init(jax.random.key(0))
+    with Checkpoints(full / CHECKPOINT_DIR) as a, Checkpoints(part / CHECKPOINT_DIR) as b:
+        state_a, key_a, n_a = a.restore(template)
+        state_b, key_b, n_b = b.restore(template)
+    assert n_a == n_b == 4
+    for x, y in zip(jax.tree.leaves(state_a), jax.tree.leaves(state_b), strict=True):
+        assert np.array_equal(np.asarray(x), np.asarray(y))
+    assert np.array_equal(jax.random.key_data(key_a), jax.random.key_data(key_b))
+    # The resumed run logged the updates it redid and the rest.
+    from ued.tensorboard import read_scalars
+
+    steps = [s for s, _ in read_scalars(part / "events")["loss/total"]]
+    assert steps[-1] == 4 * config.learner.steps_per_update
+
+
+def test_levels_repeat_the_scenarios_in_turn():
+    from ued.train import training_levels
+
+    config = tiny_config(**{"learner.num_envs": 4})
+    _, levels = training_levels(config)
+    assert levels.reward_mode.shape == (4,)
+    one = repeat_level(duel_level(), 4)
+    np.testing.assert_allclose(levels.units.position, one.units.position)

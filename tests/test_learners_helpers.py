@@ -1,0 +1,68 @@
+"""Shared builders for the learner tests (no tests of its own): a tiny 2 archers v 1 farmer
+scenario file, a tiny training config on it, and the matching learner and level batch.
+
+Every test that trains uses `tiny_config()` unchanged where it can, so all of them share one
+compiled update (the learner is cached per process by its static settings).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from tabx.params import EnvConfig, EnvParams, make_level, repeat_level
+from ued.config import TrainConfig, apply_overrides, config_from_dict
+
+ENV_CONFIG = EnvConfig(max_allies=2, max_enemies=1, max_zones=0, max_steps=8)
+TINY = {
+    "algorithm": "mappo",
+    "seed": 3,
+    "env": {"team": "ally", "opponent": "random", "max_steps": 8},
+    "learner": {"num_envs": 4, "num_steps": 16, "total_timesteps": 256, "hidden_dim": 16,
+                "num_minibatches": 2, "update_epochs": 2},
+    "run": {"checkpoint_every": 1, "keep_checkpoints": 2},
+}
+
+
+def duel_level(ally_x: float = -12.0, farmer_health: float = 60.0,
+               config: EnvConfig = ENV_CONFIG) -> EnvParams:
+    """2 archers facing +x; a farmer above them, out of their field of view."""
+    return make_level(
+        config,
+        [dict(unit="archer", position=(ally_x, -4.0), heading=0.0),
+         dict(unit="archer", position=(ally_x, 4.0), heading=0.0)],
+        [dict(unit="farmer", position=(-8.0, 18.0), heading=math.pi, health=farmer_health)])
+
+
+@functools.lru_cache(maxsize=1)
+def scenario_file() -> str:
+    """The duel as a scenario file (written once per test session)."""
+    from tabx.scenarios import level_to_scenario, save_scenario
+
+    folder = Path(tempfile.mkdtemp(prefix="tabx-learner-tests-"))
+    path = folder / "duel2a1f.json"
+    save_scenario(path, level_to_scenario(duel_level(), name="duel2a1f"))
+    return str(path)
+
+
+def tiny_config(**overrides: Any) -> TrainConfig:
+    data = apply_overrides({**TINY, "env": {**TINY["env"], "scenario": scenario_file()},
+                            "run": {**TINY["run"], "dir": tempfile.gettempdir()}},
+                           [f"{k}={v}" for k, v in overrides.items()])
+    return config_from_dict(data, source="tiny config")
+
+
+def tiny_learner():
+    from ued.train import learner_for
+
+    return learner_for(tiny_config())
+
+
+def tiny_levels() -> EnvParams:
+    return jax.tree.map(jnp.asarray, repeat_level(duel_level(), TINY["learner"]["num_envs"]))

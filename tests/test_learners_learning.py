@@ -1,0 +1,44 @@
+"""Learning test: MAPPO with the paper's PPO settings learns to win a small battle.
+
+Two archers face +x; a farmer (driven by the random controller) stands above them, outside
+their field of view, so an untrained policy rarely turns and shoots and mostly loses on
+health at the time limit (ties go to the enemy). After 40 updates of 64 envs x 64 steps the
+trained policy wins nearly every episode. Runs in about 30-45 s on 2 CPU cores.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+
+from tabx.params import EnvConfig, make_level, repeat_level
+from ued.config import PPOConfig
+from ued.learners import make_learner
+
+
+def test_mappo_learns_two_archers_against_a_farmer():
+    config = EnvConfig(max_allies=2, max_enemies=1, max_zones=0, max_steps=64)
+    level = make_level(
+        config,
+        [dict(unit="archer", position=(-12.0, -4.0), heading=0.0),
+         dict(unit="archer", position=(-12.0, 4.0), heading=0.0)],
+        [dict(unit="farmer", position=(-8.0, 18.0), heading=math.pi)])
+    num_envs, num_steps, updates = 64, 64, 40
+    levels = jax.tree.map(jnp.asarray, repeat_level(level, num_envs))
+    ppo = PPOConfig(num_envs=num_envs, num_steps=num_steps, hidden_dim=64,
+                    total_timesteps=num_envs * num_steps * updates)
+    learner = make_learner("mappo", config, ppo, team="ally", opponent="random")
+    state = learner.init(jax.random.key(0))
+    key = jax.random.key(1)
+    win_rates = []
+    for _ in range(updates):
+        key, k = jax.random.split(key)
+        state, metrics, _ = learner.update(state, levels, k)
+        win_rates.append(float(metrics["episode/win_rate"]))
+    untrained = win_rates[0]  # the rollout of the first update: the initial policy
+    trained = sum(win_rates[-5:]) / 5
+    assert untrained < 0.4, win_rates
+    assert trained > 0.85, win_rates
+    assert trained - untrained > 0.5, win_rates

@@ -1,0 +1,119 @@
+"""`tabx train`, `tabx eval` and `tabx bench train` on the command line: errors, a tiny run that
+resumes, evaluation against a controller and policy against policy (with a GIF)."""
+
+from __future__ import annotations
+
+import argparse
+
+import jax
+import pytest
+from test_learners_helpers import tiny_config
+
+from tabx.cli import main
+from ued.checkpoint import Checkpoints
+from ued.train import CHECKPOINT_DIR, CONFIG_FILE, learner_for
+
+
+def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.fixture(scope="module")
+def tiny_yaml(tmp_path_factory):
+    path = tmp_path_factory.mktemp("cfg") / "tiny.yaml"
+    path.write_text(tiny_config().to_yaml())
+    return path
+
+
+def test_train_reports_config_errors_naming_the_key(capsys, tmp_path, tiny_yaml):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("algorithm: mappo\nlearner:\n  clip_epsilon: 0.2\n")
+    code, _, err = run_cli(capsys, "train", str(bad))
+    assert code == 2 and "learner.clip_epsilon" in err and "did you mean 'clip_eps'" in err
+    code, _, err = run_cli(capsys, "train", str(tiny_yaml), "learner.gamma=2")
+    assert code == 2 and "learner.gamma: must be in [0, 1], got 2.0" in err
+    code, _, err = run_cli(capsys, "train", str(tiny_yaml), "nonsense")
+    assert code == 2 and "KEY=VALUE" in err
+    code, _, err = run_cli(capsys, "train")
+    assert code == 2 and "give a config file" in err
+    code, _, err = run_cli(capsys, "train", str(tiny_yaml), "--resume", str(tmp_path))
+    assert code == 2 and "--resume continues a run with its own config.yaml" in err
+    code, _, err = run_cli(capsys, "train", "--resume", str(tmp_path))
+    assert code == 2 and "not a run folder" in err
+    code, _, err = run_cli(capsys, "train", str(tmp_path / "missing.yaml"))
+    assert code == 2 and "cannot read the config" in err
+
+
+def test_eval_reports_errors(capsys, tmp_path):
+    code, _, err = run_cli(capsys, "eval")
+    assert code == 2 and "give a run folder" in err
+    code, _, err = run_cli(capsys, "eval", "--ally", "random", "--enemy", "heuristic:nope",
+                           "--scenario", "crossfire")
+    assert code == 2 and "unknown heuristic tier" in err
+    code, _, err = run_cli(capsys, "eval", "--ally", "random", "--enemy", "idle",
+                           "--scenario", "no-such-scenario")
+    assert code == 2 and "unknown scenario" in err
+    code, _, err = run_cli(capsys, "eval", str(tmp_path))
+    assert code == 2 and "not a run folder" in err
+
+
+def test_train_resume_and_eval(capsys, tmp_path, tiny_yaml):
+    run = tmp_path / "run"
+    code, out, err = run_cli(capsys, "train", str(tiny_yaml), "run.log_every=2",
+                             "--run-dir", str(run), "--max-updates", "2")
+    assert code == 0, err
+    assert out.strip().endswith(str(run))
+    assert "update 2/4" in err and "steps/s" in err  # the progress line
+    assert (run / CONFIG_FILE).is_file() and "log_every: 2" in (run / CONFIG_FILE).read_text()
+    code, _, err = run_cli(capsys, "train", "--resume", str(run), "--quiet")
+    assert code == 0, err
+    with Checkpoints(run / CHECKPOINT_DIR) as ck:
+        assert ck.latest() == 4 and ck.all() == [3, 4]  # keep_checkpoints: 2
+
+    # Against the medium heuristic, with a GIF of episode 0.
+    gif = tmp_path / "episode.gif"
+    code, out, err = run_cli(capsys, "eval", str(run), "--enemy", "heuristic:medium",
+                             "--episodes", "6", "--gif", str(gif))
+    assert code == 0, err
+    assert "6 episodes" in out and "win rate" in out and "episode length" in out
+    assert "enemy heuristic:medium" in out and f"ally  {run} (mappo, update 4)" in out
+    assert gif.is_file() and gif.stat().st_size > 0
+    code, _, err = run_cli(capsys, "eval", str(run), "--scenario", "crossfire")
+    assert code == 2 and "do not fit" in err
+
+
+@pytest.mark.slow
+def test_policy_against_policy(capsys, tmp_path, tiny_yaml):
+    run = tmp_path / "ally"
+    assert run_cli(capsys, "train", str(tiny_yaml), "--run-dir", str(run), "--quiet",
+                   "--max-updates", "1")[0] == 0
+    # An enemy-team run: initialised and saved as update 0 (no training needed to play).
+    enemy_config = tiny_config(**{"env.team": "enemy"})
+    enemy_run = tmp_path / "enemy"
+    enemy_run.mkdir()
+    (enemy_run / CONFIG_FILE).write_text(enemy_config.to_yaml())
+    learner = learner_for(enemy_config)
+    with Checkpoints(enemy_run / CHECKPOINT_DIR) as ck:
+        ck.save(0, learner.init(jax.random.key(1)), jax.random.key(2))
+    code, out, err = run_cli(capsys, "eval", "--ally", str(run), "--enemy", str(enemy_run),
+                             "--episodes", "4")
+    assert code == 0, err
+    assert f"enemy {enemy_run} (mappo, update 0)" in out and f"ally  {run}" in out
+    # A policy plays only the team it was trained for.
+    code, _, err = run_cli(capsys, "eval", "--ally", str(enemy_run), "--enemy", str(run))
+    assert code == 2 and "trained as the enemy team" in err
+
+
+def test_bench_train_parser():
+    from ued.learners.bench import add_train_bench
+
+    parser = argparse.ArgumentParser()
+    which = parser.add_subparsers(dest="bench_command")
+    add_train_bench(which)
+    args = parser.parse_args(["train", "--algorithms", "ippo", "--num-envs", "8",
+                              "--num-steps", "4", "--updates", "1"])
+    assert args.algorithms == ["ippo"] and args.num_envs == 8 and callable(args.func)
+    with pytest.raises(SystemExit):
+        parser.parse_args(["train", "--algorithms", "qmix"])

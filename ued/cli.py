@@ -1,0 +1,179 @@
+"""`tabx train` and `tabx eval`: the learners on the command line (a `tabx.cli` registrar).
+
+    tabx train configs/marl/mappo_crossfire.yaml [KEY=VALUE ...]
+    tabx train --resume RUN_DIR
+    tabx eval RUN_DIR [--scenario NAME] [--enemy heuristic:medium] [--episodes K] [--gif PATH]
+    tabx eval --ally RUN_A --enemy RUN_B [--scenario NAME]
+
+A side of `tabx eval` (`--ally`, `--enemy`) is a run folder or a controller
+(`heuristic[:TIER]`, `random`, `idle`); the positional RUN_DIR plays the team it was trained
+for, and the team nobody names plays the run's training opponent.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from tabx.cli import UserError
+
+
+def _cpu_tuning() -> None:
+    from ued.learners.cpu import tune_allocator
+
+    tune_allocator()
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from ued.config import ConfigError, load_config
+    from ued.train import train
+
+    _cpu_tuning()
+    positional = list(args.items)
+    config_path = None
+    if positional and "=" not in positional[0]:
+        config_path = positional.pop(0)
+    overrides = positional
+    bad = [o for o in overrides if "=" not in o]
+    if bad:
+        raise UserError(f"expected KEY=VALUE overrides after the config, got {bad[0]!r}")
+    if args.max_updates is not None and args.max_updates < 1:
+        raise UserError(f"--max-updates must be >= 1, got {args.max_updates}")
+    try:
+        if args.resume:
+            if config_path or overrides:
+                raise UserError("--resume continues a run with its own config.yaml: give no "
+                                "config file or overrides")
+            run_dir = train(run_dir=args.resume, resume=True, max_updates=args.max_updates,
+                            progress=not args.quiet)
+        else:
+            if config_path is None:
+                raise UserError("give a config file (e.g. configs/marl/mappo_crossfire.yaml) "
+                                "or --resume RUN_DIR")
+            config = load_config(config_path, overrides)
+            run_dir = train(config, run_dir=args.run_dir, max_updates=args.max_updates,
+                            progress=not args.quiet)
+    except ConfigError as err:
+        raise UserError(str(err)) from None
+    print(run_dir)
+    return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from tabx.controllers import Controller
+    from tabx.scenarios import ScenarioError, config_for, load_named
+    from ued.config import ConfigError
+    from ued.evaluate import TrainedPolicy, format_result, load_policy, parse_side, play
+
+    _cpu_tuning()
+    if args.episodes < 1:
+        raise UserError(f"--episodes must be >= 1, got {args.episodes}")
+    try:
+        sides: list = [None, None]
+        run = load_policy(args.run_dir, args.checkpoint) if args.run_dir else None
+        if run is not None:
+            sides[run.team] = run
+        for team, text in enumerate((args.ally, args.enemy)):
+            if text is None:
+                continue
+            if sides[team] is not None:
+                raise UserError(f"the {('ally', 'enemy')[team]} team is already played by "
+                                f"{args.run_dir}; name only the other team")
+            sides[team] = parse_side(text)
+        policies = [s for s in sides if isinstance(s, TrainedPolicy)]
+        reference = run or (policies[0] if policies else None)
+        for team in range(2):
+            if sides[team] is None:
+                if reference is None:
+                    raise UserError("give a run folder, or both --ally and --enemy")
+                sides[team] = Controller.parse(reference.config.env.opponent)
+        name = args.scenario or (reference.config.env.scenario[0] if reference else None)
+        if name is None:
+            raise UserError("--scenario is needed when no run folder is given")
+        try:
+            scenario = load_named(name)
+        except ScenarioError as err:
+            raise UserError(str(err)) from None
+        if reference is not None:
+            env_config = reference.learner.env_config
+        else:
+            env_config = config_for([scenario], max_steps=args.max_steps)
+        try:
+            level = scenario.to_level(env_config)
+        except ScenarioError as err:
+            raise UserError(f"{err} (the policy's EnvConfig: {env_config})") from None
+        result = play(env_config, level, sides[0], sides[1], args.episodes, seed=args.seed,
+                      greedy=args.greedy, record=bool(args.gif))
+    except ConfigError as err:
+        raise UserError(str(err)) from None
+    print(format_result(result, (sides[0], sides[1]), scenario.name, args.greedy))
+    if args.gif:
+        _write_gif(args.gif, env_config, level, sides, result)
+    return 0
+
+
+def _write_gif(path: str, env_config, level, sides, result) -> None:
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from tabx.controllers import Controller, with_tiers
+    from tabx.env import TabxEnv
+
+    try:
+        from tabx.render import render_trajectory, save_gif
+    except ImportError:  # the renderer is optional
+        raise UserError("--gif needs tabx.render, which this install lacks") from None
+    controllers = tuple(s if isinstance(s, Controller) else Controller("external")
+                        for s in sides)
+    start = TabxEnv(env_config).initial_state(with_tiers(level, controllers))
+    states = jax.tree.map(lambda s, x: jnp.concatenate([s[None], x]), start, result.states)
+    infos = {k: np.concatenate([np.zeros_like(v[:1]), v]) for k, v in result.infos.items()}
+    frames = render_trajectory(env_config, level, states, infos)
+    save_gif(frames, path)
+    print(f"wrote {path} ({len(frames)} frames, episode 0)")
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    train = subparsers.add_parser(
+        "train", help="train MAPPO or IPPO from a YAML config",
+        description="Train MAPPO or IPPO from a YAML config (configs/marl/). Overrides: "
+                    "KEY=VALUE with KEY a section.field (learner.lr) or an unambiguous field "
+                    "name (lr). The run folder (config.yaml, events/, checkpoints/) is printed "
+                    "at the end.")
+    train.add_argument("items", nargs="*", metavar="CONFIG [KEY=VALUE ...]",
+                       help="config file, then overrides")
+    train.add_argument("--resume", metavar="RUN_DIR",
+                       help="continue a run from its newest checkpoint")
+    train.add_argument("--run-dir", help="the run folder (default: run.dir/NAME-TIMESTAMP)")
+    train.add_argument("--max-updates", type=int,
+                       help="stop after this many updates (resume later with --resume)")
+    train.add_argument("--quiet", action="store_true", help="no progress line")
+    train.set_defaults(func=cmd_train)
+
+    ev = subparsers.add_parser(
+        "eval", help="evaluate trained policies (win rate, return, episode length)",
+        description="Play episodes with trained policies and print win rate, return and "
+                    "episode length with 95%% confidence intervals.")
+    ev.add_argument("run_dir", nargs="?", help="run folder of the policy to evaluate")
+    ev.add_argument("--scenario", help="scenario name or file (default: the run's first)")
+    ev.add_argument("--ally", help="who plays the ally team: a run folder or a controller")
+    ev.add_argument("--enemy", help="who plays the enemy team: a run folder or a controller "
+                                    "(heuristic:TIER, random, idle)")
+    ev.add_argument("--episodes", type=int, default=100, help="episodes (default 100)")
+    ev.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    ev.add_argument("--greedy", action="store_true",
+                    help="take the most likely action instead of sampling")
+    ev.add_argument("--checkpoint", type=int,
+                    help="checkpoint (update number) of RUN_DIR (default: newest)")
+    ev.add_argument("--max-steps", type=int, default=512,
+                    help="episode limit when no run folder gives one (default 512)")
+    ev.add_argument("--gif", metavar="PATH", help="also render episode 0 as an animated GIF")
+    ev.set_defaults(func=cmd_eval)
+
+__all__ = ["add_parser", "cmd_eval", "cmd_train"]
+
+if __name__ == "__main__":
+    from tabx.cli import main
+
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,338 @@
+"""Training configs: YAML files validated into typed, frozen dataclasses.
+
+A config has three sections and two top-level keys:
+
+    algorithm: mappo          # mappo | ippo
+    seed: 0
+    env:     {scenario, team, opponent, max_steps}
+    learner: {PPO hyperparameters, num_envs, num_steps, total_timesteps}
+    run:     {name, dir, checkpoint_every, keep_checkpoints, log_every}
+
+Every field has a default (the paper's table "IPPO and MAPPO hyperparameters" and the
+reference's defaults, TABX_REFERENCE.md section 11), so a file only lists what differs.
+`key=value` overrides address a field as `section.field` (`learner.lr=1e-3`) or by its bare
+name when that is unambiguous (`lr=1e-3`); values are read as YAML. Unknown keys, wrong types
+and out-of-range values raise `ConfigError`, whose message names the file and the key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import types
+import typing
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+ALGORITHMS = ("mappo", "ippo")
+TEAMS = ("ally", "enemy")
+
+
+class ConfigError(ValueError):
+    """A config that cannot be used; the message names the source, the key and the problem."""
+
+
+def _check(cond: bool, key: str, message: str) -> None:
+    if not cond:
+        raise ConfigError(f"{key}: {message}")
+
+
+@dataclass(frozen=True)
+class EnvSection:
+    """What is played: the scenario(s), the learner's team and who plays the other team."""
+
+    scenario: tuple[str, ...] = ("crossfire",)  # names, compositions or files; envs cycle them
+    team: str = "ally"  # the learner's team; "enemy" is the reference's flipped setting
+    opponent: str = "heuristic:medium"  # the other team: heuristic[:TIER], random or idle
+    max_steps: int = 512  # episode limit
+
+    def validate(self, prefix: str = "env") -> None:
+        _check(len(self.scenario) > 0, f"{prefix}.scenario", "needs at least one scenario")
+        _check(all(isinstance(s, str) and s for s in self.scenario), f"{prefix}.scenario",
+               "scenario names must be non-empty strings")
+        _check(self.team in TEAMS, f"{prefix}.team",
+               f"must be one of {', '.join(TEAMS)}, got {self.team!r}")
+        from tabx.controllers import Controller
+
+        try:
+            controller = Controller.parse(self.opponent)
+        except ValueError as err:
+            raise ConfigError(f"{prefix}.opponent: {err}") from None
+        _check(controller.kind != "external", f"{prefix}.opponent",
+               "the opponent must be heuristic[:TIER], random or idle (policy-vs-policy is an "
+               "evaluation: tabx eval --ally RUN_A --enemy RUN_B)")
+        _check(self.max_steps >= 1, f"{prefix}.max_steps", f"must be >= 1, got {self.max_steps}")
+
+
+@dataclass(frozen=True)
+class PPOConfig:
+    """PPO hyperparameters (defaults: the paper's table, and the reference for the rest)."""
+
+    num_envs: int = 128
+    num_steps: int = 512  # rollout length per update
+    total_timesteps: int = 50_000_000  # env steps over the whole run (num_envs x num_steps each)
+    lr: float = 4e-3
+    anneal_lr: bool = True  # linear decay to 0 over the run
+    hidden_dim: int = 128  # embedding, GRU and post-GRU width
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    clip_eps: float = 0.05  # policy ratio clip, and value clip when clip_value
+    clip_value: bool = True
+    ent_coef: float = 0.01
+    vf_coef: float = 0.5
+    max_grad_norm: float = 0.25
+    adam_eps: float = 1e-5
+    update_epochs: int = 4
+    num_minibatches: int = 4  # minibatches over envs (all agents of an env stay together)
+    normalize_advantages: bool = True  # per minibatch, over valid agent steps
+
+    @property
+    def steps_per_update(self) -> int:
+        return self.num_envs * self.num_steps
+
+    @property
+    def num_updates(self) -> int:
+        return max(1, self.total_timesteps // self.steps_per_update)
+
+    def validate(self, prefix: str = "learner") -> None:
+        for name in ("num_envs", "num_steps", "total_timesteps", "hidden_dim", "update_epochs",
+                     "num_minibatches"):
+            value = getattr(self, name)
+            _check(value >= 1, f"{prefix}.{name}", f"must be >= 1, got {value}")
+        _check(self.num_envs % self.num_minibatches == 0, f"{prefix}.num_minibatches",
+               f"must divide num_envs ({self.num_envs}), got {self.num_minibatches}")
+        _check(self.lr > 0, f"{prefix}.lr", f"must be > 0, got {self.lr}")
+        for name in ("gamma", "gae_lambda"):
+            value = getattr(self, name)
+            _check(0.0 <= value <= 1.0, f"{prefix}.{name}", f"must be in [0, 1], got {value}")
+        for name in ("clip_eps", "ent_coef", "vf_coef"):
+            value = getattr(self, name)
+            _check(value >= 0.0, f"{prefix}.{name}", f"must be >= 0, got {value}")
+        _check(self.max_grad_norm > 0, f"{prefix}.max_grad_norm",
+               f"must be > 0, got {self.max_grad_norm}")
+        _check(self.adam_eps > 0, f"{prefix}.adam_eps", f"must be > 0, got {self.adam_eps}")
+
+
+@dataclass(frozen=True)
+class RunSection:
+    """Where and how often the run writes: run folder, checkpoints, logs."""
+
+    name: str = ""  # run folder name prefix; empty: ALGORITHM_SCENARIO
+    dir: str = "runs"  # parent folder of run folders
+    checkpoint_every: int = 50  # updates between checkpoints (the last update always saves)
+    keep_checkpoints: int = 3  # checkpoints kept (the newest)
+    log_every: int = 1  # updates between TensorBoard / progress writes
+
+    def validate(self, prefix: str = "run") -> None:
+        for name in ("checkpoint_every", "keep_checkpoints", "log_every"):
+            value = getattr(self, name)
+            _check(value >= 1, f"{prefix}.{name}", f"must be >= 1, got {value}")
+        _check("/" not in self.name and "\\" not in self.name, f"{prefix}.name",
+               f"must be a plain folder name, got {self.name!r}")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """A whole training run."""
+
+    algorithm: str = "mappo"
+    seed: int = 0
+    env: EnvSection = field(default_factory=EnvSection)
+    learner: PPOConfig = field(default_factory=PPOConfig)
+    run: RunSection = field(default_factory=RunSection)
+
+    def validate(self) -> TrainConfig:
+        _check(self.algorithm in ALGORITHMS, "algorithm",
+               f"must be one of {', '.join(ALGORITHMS)}, got {self.algorithm!r}")
+        self.env.validate()
+        self.learner.validate()
+        self.run.validate()
+        return self
+
+    @property
+    def run_name(self) -> str:
+        if self.run.name:
+            return self.run.name
+        scenario = Path(self.env.scenario[0]).stem
+        more = f"+{len(self.env.scenario) - 1}" if len(self.env.scenario) > 1 else ""
+        return f"{self.algorithm}_{scenario}{more}"
+
+    def to_dict(self) -> dict[str, Any]:
+        out = dataclasses.asdict(self)
+        out["env"]["scenario"] = list(self.env.scenario)
+        return out
+
+    def to_yaml(self) -> str:
+        return yaml.safe_dump(self.to_dict(), sort_keys=False)
+
+
+# --- reading ---------------------------------------------------------------------------------
+
+
+def _type_name(tp: Any) -> str:
+    return {int: "an integer", float: "a number", bool: "true or false", str: "a string"}.get(
+        tp, str(tp))
+
+
+def _coerce(value: Any, tp: Any, key: str) -> Any:
+    """`value` as the field type `tp` (int, float, bool, str, tuple[str, ...], str | None)."""
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if value is None:
+            return None
+        return _coerce(value, args[0], key)
+    if origin is tuple:
+        (item,) = [a for a in typing.get_args(tp) if a is not Ellipsis]
+        items = [value] if isinstance(value, str) else value
+        if not isinstance(items, Sequence) or isinstance(items, str | bytes):
+            raise ConfigError(f"{key}: expected a {_type_name(item)} or a list of them, got "
+                              f"{value!r}")
+        return tuple(_coerce(v, item, key) for v in items)
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        raise ConfigError(f"{key}: expected true or false, got {value!r}")
+    if tp is int:
+        number = value
+        if isinstance(value, str):  # YAML 1.1 reads 5e7 as a string
+            try:
+                number = float(value)
+            except ValueError:
+                number = None
+        if isinstance(number, bool) or not isinstance(number, int | float) or (
+                isinstance(number, float) and not (math.isfinite(number)
+                                                   and number == int(number))):
+            raise ConfigError(f"{key}: expected an integer, got {value!r}")
+        return int(number)
+    if tp is float:
+        number = value
+        if isinstance(value, str):
+            try:
+                number = float(value)
+            except ValueError:
+                number = None
+        if isinstance(number, bool) or not isinstance(number, int | float) or not math.isfinite(
+                float(number)):
+            raise ConfigError(f"{key}: expected a number, got {value!r}")
+        return float(number)
+    if tp is str:
+        if isinstance(value, str):
+            return value
+        raise ConfigError(f"{key}: expected a string, got {value!r}")
+    raise TypeError(f"unsupported config field type {tp!r}")  # a bug here, not a user error
+
+
+def _unknown(key: str, allowed: Sequence[str]) -> ConfigError:
+    close = difflib.get_close_matches(key.rsplit(".", 1)[-1], allowed, n=1)
+    hint = f"; did you mean {close[0]!r}?" if close else ""
+    section = key.rsplit(".", 1)[0] + "." if "." in key else ""
+    return ConfigError(f"unknown key {key!r}{hint} (allowed in this section: "
+                       f"{', '.join(section + a for a in allowed)})")
+
+
+def _build(cls: type, data: Any, prefix: str) -> Any:
+    if data is None:
+        data = {}
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{prefix or 'config'}: expected a mapping of keys to values, got "
+                          f"{type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    values = {}
+    for key, value in data.items():
+        full = f"{prefix}.{key}" if prefix else str(key)
+        if key not in fields:
+            raise _unknown(full, list(fields))
+        tp = hints[key]
+        if dataclasses.is_dataclass(tp):
+            values[key] = _build(tp, value, full)
+        else:
+            values[key] = _coerce(value, tp, full)
+    return cls(**values)
+
+
+def config_from_dict(data: Any, source: str = "config") -> TrainConfig:
+    """A validated TrainConfig from a parsed YAML mapping; errors name `source`."""
+    try:
+        return _build(TrainConfig, data, "").validate()
+    except ConfigError as err:
+        raise ConfigError(f"{source}: {err}") from None
+
+
+def load_config(path: str | Path, overrides: Sequence[str] = ()) -> TrainConfig:
+    """Read a YAML config file and apply `key=value` overrides."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read the config ({err.strerror or err})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{path}: not valid YAML ({err})") from None
+    data = apply_overrides({} if data is None else data, overrides, source=str(path))
+    return config_from_dict(data, source=str(path))
+
+
+def _field_paths() -> dict[str, list[str]]:
+    """Bare field name -> its dotted paths."""
+    out: dict[str, list[str]] = {}
+    hints = typing.get_type_hints(TrainConfig)
+    for f in dataclasses.fields(TrainConfig):
+        tp = hints[f.name]
+        if dataclasses.is_dataclass(tp):
+            for sub in dataclasses.fields(tp):
+                out.setdefault(sub.name, []).append(f"{f.name}.{sub.name}")
+        else:
+            out.setdefault(f.name, []).append(f.name)
+    return out
+
+
+def apply_overrides(data: Any, overrides: Sequence[str], source: str = "config") -> dict:
+    """`data` (a parsed config mapping) with `key=value` overrides applied (values as YAML)."""
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{source}: expected a mapping of keys to values at the top level")
+    out = {k: dict(v) if isinstance(v, Mapping) else v for k, v in data.items()}
+    paths = _field_paths()
+    sections = {f.name for f in dataclasses.fields(TrainConfig)
+                if dataclasses.is_dataclass(typing.get_type_hints(TrainConfig)[f.name])}
+    for item in overrides:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ConfigError(f"override {item!r}: expected KEY=VALUE, e.g. learner.lr=1e-3")
+        try:
+            value = yaml.safe_load(text) if text.strip() else ""
+        except yaml.YAMLError:
+            value = text
+        if "." not in key:
+            if key not in paths:
+                raise _unknown(key, sorted(paths))
+            if len(paths[key]) > 1:
+                raise ConfigError(f"override {key!r} is ambiguous: use one of "
+                                  f"{', '.join(paths[key])}")
+            key = paths[key][0]
+        parts = key.split(".")
+        if len(parts) > 2 or (len(parts) == 2 and parts[0] not in sections):
+            valid = sorted(p for ps in paths.values() for p in ps)
+            close = difflib.get_close_matches(key, valid, n=1)
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+            raise ConfigError(f"override: unknown key {key!r}{hint}")
+        if len(parts) == 2:
+            section = out.setdefault(parts[0], {})
+            if not isinstance(section, dict):
+                raise ConfigError(f"{source}: {parts[0]} must be a mapping")
+            section[parts[1]] = value
+        else:
+            out[key] = value
+    return out
+
+
+__all__ = ["ALGORITHMS", "TEAMS", "ConfigError", "EnvSection", "PPOConfig", "RunSection",
+           "TrainConfig", "apply_overrides", "config_from_dict", "load_config"]

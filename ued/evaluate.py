@@ -1,0 +1,229 @@
+"""`tabx eval`: play trained policies against the heuristic, random, idle or each other.
+
+Each team is played by a *side*: a trained policy (a run folder: its config and newest
+checkpoint) or a controller (`heuristic[:TIER]`, `random`, `idle`). Episodes run in parallel,
+one env per episode, for the episode limit of the policies' EnvConfig (a finished episode is
+frozen, so the scan simply runs to the limit). Policies act with their recurrent state carried
+over the episode, sampling from the masked policy (or its argmax with `greedy`).
+
+A policy only plays levels of the EnvConfig it was trained on (its observation size is fixed):
+the scenario is padded into that config, and two policies must share one. Tiers named by a
+controller are written into the level (`with_tiers`); a bare `heuristic` plays the level's own
+heuristic settings.
+
+Results per team: win rate with a 95 % Wilson interval (exactly one team wins an episode: a
+time-out goes to the higher health ratio, ties to the enemy), mean undiscounted return and
+mean episode length with 95 % normal intervals.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from tabx import constants as C
+from tabx.controllers import Controller, controlled_actions, with_tiers
+from tabx.env import TabxEnv
+from tabx.params import EnvConfig, EnvParams, repeat_level
+from ued.checkpoint import Checkpoints
+from ued.config import ConfigError, TrainConfig
+from ued.learners.ppo import PPOLearner, masked_logits
+
+TEAM_NAMES = ("ally", "enemy")
+
+
+@dataclass(frozen=True)
+class TrainedPolicy:
+    """A policy loaded from a run folder."""
+
+    run_dir: Path
+    config: TrainConfig
+    learner: PPOLearner
+    params: Any
+    update: int
+
+    @property
+    def team(self) -> int:
+        return TEAM_NAMES.index(self.config.env.team)
+
+    def __str__(self) -> str:
+        return f"{self.run_dir} ({self.config.algorithm}, update {self.update})"
+
+
+Side = TrainedPolicy | Controller
+
+
+def load_policy(run_dir: str | Path, checkpoint: int | None = None) -> TrainedPolicy:
+    """The policy of a run folder at its newest (or the given) checkpoint."""
+    from ued.train import CHECKPOINT_DIR, learner_for, read_run_config
+
+    run_dir = Path(run_dir)
+    config = read_run_config(run_dir)
+    learner = learner_for(config)
+    template = learner.init(jax.random.key(0))
+    with Checkpoints(run_dir / CHECKPOINT_DIR, keep=config.run.keep_checkpoints) as ckpts:
+        if ckpts.latest() is None:
+            raise ConfigError(f"{run_dir}: no checkpoint yet")
+        if checkpoint is not None and checkpoint not in ckpts.all():
+            raise ConfigError(f"{run_dir}: no checkpoint {checkpoint} (have "
+                              f"{', '.join(map(str, ckpts.all()))})")
+        state, _, update = ckpts.restore(template, checkpoint)
+    return TrainedPolicy(run_dir, config, learner, state.params, update)
+
+
+def parse_side(text: str) -> Side:
+    """A run folder (it holds a config.yaml) or a controller spec."""
+    path = Path(text)
+    if path.is_dir():
+        return load_policy(path)
+    try:
+        controller = Controller.parse(text)
+    except ValueError as err:
+        raise ConfigError(f"{text!r} is neither a run folder nor a controller ({err})") from None
+    if controller.kind == "external":
+        raise ConfigError("'external' is not a side: give a run folder or heuristic[:TIER], "
+                          "random or idle")
+    return controller
+
+
+@dataclass
+class EvalResult:
+    episodes: int
+    won: np.ndarray  # (K, 2) bool
+    returns: np.ndarray  # (K, 2) float
+    lengths: np.ndarray  # (K,) int
+    states: Any = None  # EnvState of episode 0 with a time axis (for --gif)
+    infos: Any = None
+
+    def win_rate(self, team: int) -> tuple[float, float, float]:
+        return wilson(int(self.won[:, team].sum()), self.episodes)
+
+    def mean_return(self, team: int) -> tuple[float, float]:
+        return mean_ci(self.returns[:, team])
+
+    def mean_length(self) -> tuple[float, float]:
+        return mean_ci(self.lengths.astype(np.float64))
+
+
+def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float, float]:
+    """(rate, low, high): the 95 % Wilson score interval of a binomial rate."""
+    if n == 0:
+        return math.nan, math.nan, math.nan
+    p = successes / n
+    denom = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return p, max(0.0, centre - half), min(1.0, centre + half)
+
+
+def mean_ci(x: np.ndarray, z: float = 1.96) -> tuple[float, float]:
+    """(mean, half width of the 95 % normal interval)."""
+    x = np.asarray(x, np.float64)
+    if x.size == 0:
+        return math.nan, math.nan
+    half = z * x.std(ddof=1) / math.sqrt(x.size) if x.size > 1 else math.nan
+    return float(x.mean()), float(half)
+
+
+def _policy_actions(policy: TrainedPolicy, params: Any, obs: jax.Array, mask: jax.Array,
+                    hidden: Any, key: jax.Array, greedy: bool) -> tuple[jax.Array, Any]:
+    learner = policy.learner
+    x = learner.agent_inputs(obs[:, learner.slots])
+    hidden, logits = learner.policy_step(params, x, hidden)
+    logits = masked_logits(logits, mask[:, learner.slots])
+    if greedy:
+        return jnp.argmax(logits, -1).astype(jnp.int32), hidden
+    return jax.random.categorical(key, logits).astype(jnp.int32), hidden
+
+
+def play(env_config: EnvConfig, level: EnvParams, ally: Side, enemy: Side, episodes: int,
+         seed: int = 0, greedy: bool = False, record: bool = False) -> EvalResult:
+    """Play `episodes` episodes of one level (EnvParams without a batch axis)."""
+    sides = (ally, enemy)
+    for team, side in enumerate(sides):
+        if isinstance(side, TrainedPolicy):
+            if side.learner.env_config != env_config:
+                raise ConfigError(f"{side.run_dir} was trained with {side.learner.env_config}, "
+                                  f"this evaluation needs {env_config}")
+            if side.team != team:
+                raise ConfigError(f"{side.run_dir} was trained as the {TEAM_NAMES[side.team]} "
+                                  f"team; it cannot play the {TEAM_NAMES[team]} team")
+    controllers = tuple(Controller("external") if isinstance(s, TrainedPolicy) else s
+                        for s in sides)
+    level = with_tiers(level, controllers)
+    env = TabxEnv(env_config)
+    policies = [s if isinstance(s, TrainedPolicy) else None for s in sides]
+    params = [p.params if p is not None else None for p in policies]
+    levels = jax.tree.map(jnp.asarray, repeat_level(level, episodes))
+
+    @jax.jit
+    def run(params, levels, key):
+        _, states = jax.vmap(env.reset)(jax.random.split(key, episodes), levels)
+        hidden = [p.learner.initial_hidden(episodes) if p is not None else None
+                  for p in policies]
+        zeros = jnp.zeros((episodes, C.NUM_TEAMS), jnp.float32)
+
+        def body(carry, step_key):
+            states, hidden, returns, length = carry
+            keys = jax.random.split(step_key, 4)
+            obs = jax.vmap(env.observe)(states, levels)
+            mask = jax.vmap(env.action_mask)(states, levels)
+            external = jnp.zeros((episodes, env_config.num_units), jnp.int32)
+            hidden = list(hidden)
+            for team, policy in enumerate(policies):
+                if policy is None:
+                    continue
+                acts, hidden[team] = _policy_actions(policy, params[team], obs, mask,
+                                                     hidden[team], keys[team], greedy)
+                external = external.at[:, policy.learner.slots].set(acts)
+            actions, states_h = jax.vmap(
+                lambda k, s, lv, e: controlled_actions(k, s, lv, e, controllers))(
+                jax.random.split(keys[2], episodes), states, levels, external)
+            was_done = states.done
+            _, states, reward, done, info = jax.vmap(env.step, in_axes=(None, 0, 0, 0))(
+                keys[3], states_h, actions, levels)
+            returns = returns + reward
+            length = length + (~was_done).astype(jnp.int32)
+            out = (jax.tree.map(lambda x: x[0], states), jax.tree.map(lambda x: x[0], info)
+                   ) if record else None
+            return (states, hidden, returns, length), out
+
+        init = (states, hidden, zeros, jnp.zeros(episodes, jnp.int32))
+        (states, _, returns, length), trace = jax.lax.scan(
+            body, init, jax.random.split(key, env_config.max_steps))
+        return states.won, returns, length, trace
+
+    won, returns, lengths, trace = jax.device_get(run(params, levels, jax.random.key(seed)))
+    states, infos = trace if record else (None, None)
+    return EvalResult(episodes, np.asarray(won), np.asarray(returns), np.asarray(lengths),
+                      states, infos)
+
+
+def describe(side: Side) -> str:
+    return str(side)
+
+
+def format_result(result: EvalResult, sides: tuple[Side, Side], scenario: str,
+                  greedy: bool) -> str:
+    lines = [f"scenario {scenario}: {result.episodes} episodes, "
+             f"{'greedy' if greedy else 'sampled'} policies"]
+    for team, side in enumerate(sides):
+        rate, low, high = result.win_rate(team)
+        ret, ret_ci = result.mean_return(team)
+        lines.append(f"  {TEAM_NAMES[team]:5s} {describe(side)}")
+        lines.append(f"        win rate {rate:.3f} [{low:.3f}, {high:.3f}]   "
+                     f"return {ret:+.3f} ± {ret_ci:.3f}")
+    length, length_ci = result.mean_length()
+    lines.append(f"  episode length {length:.1f} ± {length_ci:.1f} steps "
+                 f"(95 % intervals: Wilson for rates, normal for means)")
+    return "\n".join(lines)
+
+
+__all__ = ["EvalResult", "Side", "TrainedPolicy", "format_result", "load_policy", "mean_ci",
+           "parse_side", "play", "wilson"]

@@ -1,0 +1,132 @@
+"""`tabx bench train`: end-to-end training throughput of MAPPO and IPPO.
+
+Protocol (issue #7): the paper's defaults (128 envs x 512 steps per update, 4 epochs of 4
+minibatches, hidden 128) on a scenario (default crossfire) against an opponent (default the
+medium heuristic). The first update is timed from the call to its result, compilation
+included; then `--updates` more updates are timed one by one (`block_until_ready`), and the
+steady-state throughput is env steps per update / median seconds per update. A fresh learner is
+built for each algorithm (no compiled function is reused), and the level batch is a jit
+argument, as in training. The allocator tuning of `tabx train` (ued.learners.cpu) is on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from dataclasses import asdict, dataclass
+
+import jax
+import jax.numpy as jnp
+
+
+@dataclass
+class TrainBenchResult:
+    algorithm: str
+    scenario: str
+    opponent: str
+    num_envs: int
+    num_steps: int
+    first_update_s: float
+    update_s: float  # median of the timed updates
+    steps_per_s: float
+    updates: int
+
+
+def run_train_bench(algorithm: str, scenario: str = "crossfire",
+                    opponent: str = "heuristic:medium", num_envs: int = 128,
+                    num_steps: int = 512, updates: int = 3) -> TrainBenchResult:
+    from tabx.params import repeat_level
+    from tabx.scenarios import config_for, load_named
+    from ued.config import PPOConfig
+    from ued.learners import make_learner
+    from ued.learners.cpu import tune_allocator
+
+    tune_allocator()
+    level_scenario = load_named(scenario)
+    env_config = config_for([level_scenario])
+    levels = jax.tree.map(jnp.array, repeat_level(level_scenario.to_level(env_config), num_envs))
+    ppo = PPOConfig(num_envs=num_envs, num_steps=num_steps)
+    learner = make_learner(algorithm, env_config, ppo, "ally", opponent, cached=False)
+    key = jax.random.key(0)
+    state = learner.init(key)
+    t0 = time.perf_counter()
+    key, k = jax.random.split(key)
+    state, metrics, _ = learner.update(state, levels, k)
+    jax.block_until_ready((state, metrics))
+    first = time.perf_counter() - t0
+    times = []
+    for _ in range(updates):
+        key, k = jax.random.split(key)
+        t0 = time.perf_counter()
+        state, metrics, _ = learner.update(state, levels, k)
+        jax.block_until_ready((state, metrics))
+        times.append(time.perf_counter() - t0)
+    median = statistics.median(times) if times else float("nan")
+    return TrainBenchResult(algorithm, scenario, opponent, num_envs, num_steps, first, median,
+                            num_envs * num_steps / median, updates)
+
+
+def bench_train(args: argparse.Namespace) -> int:
+    from tabx.bench import machine_summary
+
+    print(f"# tabx bench train on {machine_summary()}; {args.scenario} vs {args.opponent}, "
+          f"{args.num_envs} envs x {args.num_steps} steps per update", flush=True)
+    print(f"{'algorithm':>9} {'first update s':>14} {'update s':>9} {'steps/s':>10}", flush=True)
+    results = []
+    for algorithm in args.algorithms:
+        r = run_train_bench(algorithm, args.scenario, args.opponent, args.num_envs,
+                            args.num_steps, args.updates)
+        results.append(r)
+        print(f"{algorithm:>9} {r.first_update_s:>14.1f} {r.update_s:>9.2f} "
+              f"{r.steps_per_s:>10,.0f}", flush=True)
+    if args.json:
+        from tabx.files import atomic_write_text
+
+        lines = "".join(json.dumps({**asdict(r), "machine": machine_summary()}) + "\n"
+                        for r in results)
+        atomic_write_text(args.json, lines)
+        print(f"wrote {args.json}")
+    return 0
+
+
+def _algorithms(text: str) -> list[str]:
+    from ued.learners import LEARNERS
+
+    names = [t for t in text.split(",") if t]
+    unknown = [n for n in names if n not in LEARNERS]
+    if not names or unknown:
+        raise argparse.ArgumentTypeError(
+            f"expected a comma-separated list of {', '.join(LEARNERS)}, got {text!r}")
+    return names
+
+
+def _positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}")
+    return value
+
+
+def add_train_bench(which: argparse._SubParsersAction) -> None:
+    """Add `train` to the `tabx bench` sub-commands (`which` = bench.add_subparsers(...))."""
+    p = which.add_parser("train", help="MAPPO / IPPO training throughput (env steps/s)")
+    p.add_argument("--algorithms", type=_algorithms, default=["mappo", "ippo"],
+                   help="comma-separated learners (default mappo,ippo)")
+    p.add_argument("--scenario", default="crossfire", help="scenario (default crossfire)")
+    p.add_argument("--opponent", default="heuristic:medium",
+                   help="the other team (default heuristic:medium)")
+    p.add_argument("--num-envs", type=_positive, default=128, help="envs (default 128)")
+    p.add_argument("--num-steps", type=_positive, default=512,
+                   help="rollout steps per update (default 512)")
+    p.add_argument("--updates", type=_positive, default=3,
+                   help="timed updates after the first (median; default 3)")
+    p.add_argument("--json", help="also write results as JSON lines to this file")
+    p.set_defaults(func=bench_train)
+
+
+__all__ = ["TrainBenchResult", "add_train_bench", "run_train_bench"]

@@ -1,0 +1,455 @@
+"""Recurrent PPO for TABX teams: rollout, GAE, the clipped loss and the jitted update.
+
+`PPOLearner` holds everything static (env sizes, hyperparameters, which team learns, who plays
+the other team, the optimiser); `MAPPO` (ued.learners.mappo) and `IPPO` (ued.learners.ippo)
+add their networks. The one entry point UED needs is
+
+    train_state, metrics, rollout_stats = learner.update(train_state, levels, key)
+
+jitted once: `levels` is a batch of `num_envs` levels (EnvParams with a leading axis), a jit
+*argument*, so any batch of the same EnvConfig runs through the same compiled update. Each
+update resets every env into its level, rolls out `num_steps` steps (a finished episode
+restarts in the same level), computes GAE, and runs `update_epochs` epochs of
+`num_minibatches` minibatches over envs (all agents of an env stay in one minibatch, so
+sequences are whole and the recurrent state starts from zeros at the rollout start).
+
+Agents are the unit slots of the learner's team (ally slots 0..A-1, or the enemy slots after
+them in the flipped setting); one network is shared by all of them, with a one-hot agent id
+appended to the observation. What the masks mean:
+
+- an agent is *valid* at step t when its unit is alive at the observation (dead and padded
+  slots have IDLE as their only action): only valid agent steps enter the policy loss, the
+  entropy, the advantage normalisation and (IPPO) the value loss;
+- the hidden states are reset at every episode boundary (the reference resets them only on
+  a unit's death, TABX_REFERENCE.md section 12); invalid actions get logits -1e10.
+
+Rewards are the team reward `reward[:, team]`; a win is `info["won"][:, team]`. Episode
+metrics (win rate, return, length, first-kill rate) count the episodes that ended during the
+rollout; the first-kill rate is the fraction in which the first unit to die was an opponent's
+(a simultaneous first death counts as no first kill).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from tabx import constants as C
+from tabx.controllers import Controller, controlled_actions, with_tiers
+from tabx.env import TabxEnv
+from tabx.params import EnvConfig, EnvParams
+from tabx.state import EnvState
+from ued.config import PPOConfig
+
+MASKED_LOGIT = -1e10
+
+
+@struct.dataclass
+class TrainState:
+    """What an update changes: parameters, optimiser state, and the number of updates done."""
+
+    params: Any
+    opt_state: Any
+    update: jax.Array  # int32 scalar
+
+
+@struct.dataclass
+class RolloutStats:
+    """Per env and step (time-major, (num_steps, num_envs)), what UED scoring needs
+    (ued.scores): the team value V(s_t), the GAE advantage, whether step t ended an episode,
+    the team reward, and whether the team won the episode that ended at t. For IPPO the value
+    and the advantage are the mean over the team's living agents."""
+
+    values: jax.Array
+    advantages: jax.Array
+    dones: jax.Array
+    rewards: jax.Array
+    wins: jax.Array
+
+
+@struct.dataclass
+class Transition:
+    """One rollout step of all envs (leading axes (E,) or (T, E) once stacked)."""
+
+    obs: jax.Array  # (E, A, obs_size) the agents' observations (without the agent id)
+    world: jax.Array  # (E, state_size) world state (MAPPO) or (E, 0)
+    mask: jax.Array  # (E, A, 8) legal actions
+    alive: jax.Array  # (E, A) the agent's unit is alive (valid agent step)
+    action: jax.Array  # (E, A) int32
+    logp: jax.Array  # (E, A) log-probability of the action under the rollout policy
+    value: jax.Array  # (E,) MAPPO or (E, A) IPPO
+    reward: jax.Array  # (E,) team reward
+    done: jax.Array  # (E,) the step ended the episode
+    won: jax.Array  # (E,) the team won the episode that ended
+
+
+# --- pure helpers (unit-tested on their own) -------------------------------------------------
+
+
+def gae(rewards: jax.Array, values: jax.Array, dones: jax.Array, last_value: jax.Array,
+        gamma: float, lam: float) -> tuple[jax.Array, jax.Array]:
+    """Generalised advantage estimation, time-major: (advantages, value targets).
+
+    rewards, values, dones: (T, ...); dones[t] ends the episode at step t, so V(s_{t+1}) (the
+    next episode's first state) is not bootstrapped; last_value: (...) V of the state after the
+    last step. delta_t = r_t + gamma V_{t+1} (1 - d_t) - V_t and
+    A_t = delta_t + gamma lam (1 - d_t) A_{t+1}."""
+    def body(carry, inputs):
+        adv_next, value_next = carry
+        reward, value, done = inputs
+        cont = 1.0 - done.astype(jnp.float32)
+        delta = reward + gamma * value_next * cont - value
+        adv = delta + gamma * lam * cont * adv_next
+        return (adv, value), adv
+
+    init = (jnp.zeros_like(last_value), last_value)
+    _, adv = jax.lax.scan(body, init, (rewards, values, dones), reverse=True, unroll=8)
+    return adv, adv + values
+
+
+def masked_logits(logits: jax.Array, mask: jax.Array) -> jax.Array:
+    """Logits with illegal actions set to -1e10 (probability zero)."""
+    return jnp.where(mask, logits, MASKED_LOGIT)
+
+
+def masked_mean(x: jax.Array, valid: jax.Array) -> jax.Array:
+    """Mean of `x` over the entries where `valid` (whatever the others hold, inf or NaN
+    included); 0 if there are none."""
+    valid = jnp.broadcast_to(valid, x.shape)
+    return jnp.sum(jnp.where(valid, x, 0.0)) / jnp.maximum(jnp.sum(valid), 1).astype(x.dtype)
+
+
+def policy_terms(logits: jax.Array, mask: jax.Array, actions: jax.Array
+                 ) -> tuple[jax.Array, jax.Array]:
+    """(log-probability of `actions`, entropy) of the masked categorical policy."""
+    logp_all = jax.nn.log_softmax(masked_logits(logits, mask))
+    logp = jnp.take_along_axis(logp_all, actions[..., None].astype(jnp.int32), -1)[..., 0]
+    probs = jnp.exp(logp_all)
+    entropy = -jnp.sum(jnp.where(mask, probs * logp_all, 0.0), -1)
+    return logp, entropy
+
+
+def ppo_policy_loss(logp: jax.Array, old_logp: jax.Array, advantages: jax.Array,
+                    valid: jax.Array, clip_eps: float) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Clipped surrogate loss over valid entries: (loss, approx KL, clip fraction)."""
+    log_ratio = logp - old_logp
+    ratio = jnp.exp(log_ratio)
+    surrogate = jnp.minimum(ratio * advantages,
+                            jnp.clip(ratio, 1.0 - clip_eps, 1.0 + clip_eps) * advantages)
+    loss = -masked_mean(surrogate, valid)
+    approx_kl = masked_mean((ratio - 1.0) - log_ratio, valid)
+    clip_frac = masked_mean((jnp.abs(ratio - 1.0) > clip_eps).astype(jnp.float32), valid)
+    return loss, approx_kl, clip_frac
+
+
+def value_loss(values: jax.Array, old_values: jax.Array, targets: jax.Array,
+               valid: jax.Array, clip_eps: float, clip: bool = True) -> jax.Array:
+    """0.5 (V - target)^2 over valid entries; with `clip`, the max with the loss of the value
+    clipped to within clip_eps of the rollout's value (the reference's value clipping)."""
+    loss = jnp.square(values - targets)
+    if clip:
+        clipped = old_values + jnp.clip(values - old_values, -clip_eps, clip_eps)
+        loss = jnp.maximum(loss, jnp.square(clipped - targets))
+    return 0.5 * masked_mean(loss, valid)
+
+
+def normalise(x: jax.Array, valid: jax.Array) -> jax.Array:
+    """(x - mean) / (std + 1e-8) over the valid entries."""
+    mean = masked_mean(x, valid)
+    var = masked_mean(jnp.square(x - mean), valid)
+    return (x - mean) / (jnp.sqrt(var) + 1e-8)
+
+
+def team_mean(x: jax.Array, valid: jax.Array) -> jax.Array:
+    """Mean over the last (agent) axis of the valid entries; the plain mean where none is."""
+    v = valid.astype(x.dtype)
+    count = jnp.sum(v, -1)
+    return jnp.where(count > 0, jnp.sum(x * v, -1) / jnp.maximum(count, 1.0), jnp.mean(x, -1))
+
+
+# --- the learner -----------------------------------------------------------------------------
+
+
+class PPOLearner:
+    """Static description of a PPO learner for one EnvConfig; subclasses add the networks.
+
+    `update` is jitted at construction (the learner itself is the static part); its train-state
+    argument is donated, so do not reuse a train state after passing it to `update`."""
+
+    name = "ppo"
+    centralised = False  # the critic reads the world state (MAPPO)
+    param_groups: tuple[str, ...] = ("net",)  # optimiser groups, each clipped on its own
+
+    def __init__(self, env_config: EnvConfig, ppo: PPOConfig | None = None,
+                 team: str | int = "ally", opponent: str | Controller = "heuristic:medium"):
+        self.env_config = env_config
+        self.ppo = ppo if ppo is not None else PPOConfig()
+        self.team = team if isinstance(team, int) else ("ally", "enemy").index(team)
+        self.opponent = opponent if isinstance(opponent, Controller) else Controller.parse(
+            opponent)
+        if self.opponent.kind == "external":
+            raise ValueError("the opponent of a learner must be heuristic, random or idle")
+        self.controllers = ((Controller("external"), self.opponent) if self.team == C.ALLY
+                            else (self.opponent, Controller("external")))
+        self.env = TabxEnv(env_config)
+        if self.team == C.ALLY:
+            self.slots = slice(0, env_config.max_allies)
+        else:
+            self.slots = slice(env_config.max_allies, env_config.num_units)
+        self.num_agents = self.slots.stop - self.slots.start
+        self.obs_dim = env_config.obs_size + self.num_agents  # + one-hot agent id
+        self.state_dim = env_config.state_size
+        self.optimizer = self._make_optimizer()
+        self.update = jax.jit(self._update, donate_argnums=0)
+
+    # --- to be provided by MAPPO / IPPO ------------------------------------------------------
+
+    def init_params(self, key: jax.Array) -> Any:
+        raise NotImplementedError
+
+    def initial_hidden(self, num_envs: int) -> Any:
+        raise NotImplementedError
+
+    def act_step(self, params: Any, x: jax.Array, world: jax.Array, hidden: Any
+                 ) -> tuple[Any, jax.Array, jax.Array]:
+        """One step: (new hidden, logits (E, A, 8), value (E,) or (E, A))."""
+        raise NotImplementedError
+
+    def policy_step(self, params: Any, x: jax.Array, hidden: Any) -> tuple[Any, jax.Array]:
+        """The actor alone (evaluation): (new hidden, logits (E, A, 8))."""
+        raise NotImplementedError
+
+    def evaluate_sequence(self, params: Any, x: jax.Array, world: jax.Array, starts: jax.Array
+                          ) -> tuple[jax.Array, jax.Array]:
+        """Whole sequences from zero hidden states: (logits (T, B, A, 8), values)."""
+        raise NotImplementedError
+
+    def value_terms(self, values: jax.Array, last_value: jax.Array, alive: jax.Array,
+                    last_alive: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Values used by GAE (and their bootstrap); see IPPO for dead agents."""
+        return values, last_value
+
+    def label_params(self, params: Any) -> Any:
+        """Optimiser labels (one of `param_groups` per leaf): each group has its own gradient
+        clipping and Adam state, as the reference's separate actor and critic train states."""
+        return jax.tree.map(lambda _: "net", params)
+
+    # --- shared machinery --------------------------------------------------------------------
+
+    @property
+    def num_updates(self) -> int:
+        return self.ppo.num_updates
+
+    def _make_optimizer(self) -> optax.GradientTransformation:
+        ppo = self.ppo
+        steps_per_update = ppo.update_epochs * ppo.num_minibatches
+
+        def schedule(count: jax.Array) -> jax.Array:
+            frac = 1.0 - (count // steps_per_update) / self.num_updates
+            return ppo.lr * frac
+
+        lr = schedule if ppo.anneal_lr else ppo.lr
+
+        def tx() -> optax.GradientTransformation:
+            return optax.chain(optax.clip_by_global_norm(ppo.max_grad_norm),
+                               optax.adam(lr, eps=ppo.adam_eps))
+
+        return optax.multi_transform({group: tx() for group in self.param_groups},
+                                     self.label_params)
+
+    def init(self, key: jax.Array) -> TrainState:
+        params = self.init_params(key)
+        return TrainState(params=params, opt_state=self.optimizer.init(params),
+                          update=jnp.zeros((), jnp.int32))
+
+    def prepare_levels(self, levels: EnvParams) -> EnvParams:
+        """The levels with the opponent's tier written in (a no-op for a bare `heuristic`)."""
+        return with_tiers(levels, self.controllers)
+
+    def agent_inputs(self, obs: jax.Array) -> jax.Array:
+        """(..., A, obs_size) -> (..., A, obs_size + A): the one-hot agent id appended."""
+        ids = jnp.broadcast_to(jnp.eye(self.num_agents, dtype=obs.dtype),
+                               (*obs.shape[:-1], self.num_agents))
+        return jnp.concatenate([obs, ids], axis=-1)
+
+    def _world(self, states: EnvState, levels: EnvParams) -> jax.Array:
+        if self.centralised:
+            return jax.vmap(self.env.world_state)(states, levels)
+        return jnp.zeros((states.step.shape[0], 0), jnp.float32)
+
+    def _join_actions(self, key: jax.Array, states: EnvState, levels: EnvParams,
+                      learner_actions: jax.Array) -> tuple[jax.Array, EnvState]:
+        num_envs = learner_actions.shape[0]
+        external = jnp.zeros((num_envs, self.env_config.num_units), jnp.int32)
+        external = external.at[:, self.slots].set(learner_actions)
+        controllers = self.controllers
+        return jax.vmap(lambda k, s, lv, e: controlled_actions(k, s, lv, e, controllers))(
+            jax.random.split(key, num_envs), states, levels, external)
+
+    def rollout(self, params: Any, levels: EnvParams, key: jax.Array
+                ) -> tuple[Transition, dict[str, jax.Array], jax.Array, jax.Array]:
+        """Reset every env into its level and play `num_steps` steps.
+
+        Returns (transitions (T, E, ...), per-step episode records (T, E), bootstrap value of
+        the state after the last step, whether each agent is alive there)."""
+        env, team = self.env, self.team
+        num_envs = levels.reward_mode.shape[0]
+        obs, states = jax.vmap(env.reset)(jax.random.split(key, num_envs), levels)
+        start_states = states
+        zeros_f = jnp.zeros(num_envs, jnp.float32)
+        zeros_i = jnp.zeros(num_envs, jnp.int32)
+        carry = (states, obs, self.initial_hidden(num_envs), zeros_f, zeros_i, zeros_i)
+
+        def body(carry, step_key):
+            states, obs, hidden, ep_return, ep_length, first = carry
+            k_act, k_other = jax.random.split(step_key)
+            ob = obs[:, self.slots]
+            mask = jax.vmap(env.action_mask)(states, levels)[:, self.slots]
+            world = self._world(states, levels)
+            hidden, logits, value = self.act_step(params, self.agent_inputs(ob), world, hidden)
+            logits = masked_logits(logits, mask)
+            action = jax.random.categorical(k_act, logits).astype(jnp.int32)
+            logp = jnp.take_along_axis(jax.nn.log_softmax(logits), action[..., None], -1)[..., 0]
+            actions, states_h = self._join_actions(k_other, states, levels, action)
+            next_obs, next_states, reward, done, info = jax.vmap(
+                env.step_autoreset, in_axes=(None, 0, 0, 0, 0))(
+                step_key, states_h, actions, levels, start_states)
+            hidden = jax.tree.map(
+                lambda h: jnp.where(done.reshape(done.shape + (1,) * (h.ndim - 1)), 0.0, h),
+                hidden)
+            r = reward[:, team]
+            won = info["won"][:, team] & done
+            # Episode records: return, length, and who lost a unit first.
+            dead = info["dead_units"]
+            ep_return = ep_return + r
+            ep_length = ep_length + 1
+            someone_died = (dead[:, 0] + dead[:, 1]) > 0
+            we_killed_first = (dead[:, 1 - team] > 0) & (dead[:, team] == 0)
+            first = jnp.where((first == 0) & someone_died,
+                              jnp.where(we_killed_first, 1, 2), first)
+            record = {"done": done, "won": won, "return": jnp.where(done, ep_return, 0.0),
+                      "length": jnp.where(done, ep_length, 0),
+                      "first_kill": done & (first == 1)}
+            transition = Transition(obs=ob, world=world, mask=mask,
+                                    alive=states.alive[:, self.slots], action=action, logp=logp,
+                                    value=value, reward=r, done=done, won=won)
+            carry = (next_states, next_obs, hidden, jnp.where(done, 0.0, ep_return),
+                     jnp.where(done, 0, ep_length), jnp.where(done, 0, first))
+            return carry, (transition, record)
+
+        keys = jax.random.split(key, self.ppo.num_steps)
+        (states, obs, hidden, _, _, _), (traj, records) = jax.lax.scan(
+            body, carry, keys, unroll=int(__import__('os').environ.get('TABX_RU','1')))
+        world = self._world(states, levels)
+        _, _, last_value = self.act_step(params, self.agent_inputs(obs[:, self.slots]), world,
+                                         hidden)
+        return traj, records, last_value, states.alive[:, self.slots]
+
+    def _loss(self, params: Any, batch: dict[str, jax.Array]
+              ) -> tuple[jax.Array, dict[str, jax.Array]]:
+        ppo = self.ppo
+        logits, values = self.evaluate_sequence(
+            params, self.agent_inputs(batch["obs"]), batch["world"], batch["starts"])
+        valid = batch["alive"]
+        logp, entropy = policy_terms(logits, batch["mask"], batch["action"])
+        adv = batch["adv"]
+        if adv.ndim < valid.ndim:  # one advantage per env (MAPPO): every agent of the env
+            adv = jnp.broadcast_to(adv[..., None], valid.shape)
+        if ppo.normalize_advantages:
+            adv = normalise(adv, valid)
+        pg_loss, approx_kl, clip_frac = ppo_policy_loss(logp, batch["logp"], adv, valid,
+                                                        ppo.clip_eps)
+        value_valid = valid if values.ndim == valid.ndim else jnp.ones(values.shape, bool)
+        v_loss = value_loss(values, batch["value"], batch["targets"], value_valid,
+                            ppo.clip_eps, ppo.clip_value)
+        ent = masked_mean(entropy, valid)
+        total = pg_loss + ppo.vf_coef * v_loss - ppo.ent_coef * ent
+        return total, {"loss/total": total, "loss/policy": pg_loss, "loss/value": v_loss,
+                       "loss/entropy": ent, "loss/approx_kl": approx_kl,
+                       "loss/clip_frac": clip_frac}
+
+    def _update(self, train_state: TrainState, levels: EnvParams, key: jax.Array
+                ) -> tuple[TrainState, dict[str, jax.Array], RolloutStats]:
+        ppo = self.ppo
+        levels = self.prepare_levels(levels)
+        num_envs = levels.reward_mode.shape[0]
+        if num_envs % ppo.num_minibatches:
+            raise ValueError(f"{num_envs} envs do not split into {ppo.num_minibatches} "
+                             f"minibatches")
+        k_rollout, k_train = jax.random.split(key)
+        traj, records, last_value, last_alive = self.rollout(train_state.params, levels,
+                                                             k_rollout)
+        values, last_value = self.value_terms(traj.value, last_value, traj.alive, last_alive)
+        dones = traj.done
+        rewards = traj.reward
+        if values.ndim == 3:  # per-agent values: the team reward and done for every agent
+            dones, rewards = dones[..., None], rewards[..., None]
+        adv, targets = gae(rewards, values, dones, last_value, ppo.gamma, ppo.gae_lambda)
+        starts = jnp.concatenate([jnp.ones((1, num_envs), bool), traj.done[:-1]], axis=0)
+        batch = {"obs": traj.obs, "world": traj.world, "mask": traj.mask, "alive": traj.alive,
+                 "action": traj.action, "logp": traj.logp, "value": traj.value,
+                 "adv": adv, "targets": targets, "starts": starts}
+        grad_fn = jax.value_and_grad(self._loss, has_aux=True)
+        per_minibatch = num_envs // ppo.num_minibatches
+
+        def epoch(carry, k):
+            def minibatch(carry, idx):
+                params, opt_state = carry
+                mb = jax.tree.map(lambda x: jnp.take(x, idx, axis=1), batch)
+                (_, aux), grads = grad_fn(params, mb)
+                aux["grad_norm"] = optax.tree.norm(grads)
+                updates, opt_state = self.optimizer.update(grads, opt_state, params)
+                return (optax.apply_updates(params, updates), opt_state), aux
+
+            order = jax.random.permutation(k, num_envs).reshape(ppo.num_minibatches,
+                                                                 per_minibatch)
+            return jax.lax.scan(minibatch, carry, order)
+
+        (params, opt_state), aux = jax.lax.scan(
+            epoch, (train_state.params, train_state.opt_state),
+            jax.random.split(k_train, ppo.update_epochs))
+        metrics = {k: jnp.mean(v) for k, v in aux.items()}
+        metrics.update(episode_metrics(records))
+        team_values = values if values.ndim == 2 else team_mean(values, traj.alive)
+        team_adv = adv if adv.ndim == 2 else team_mean(adv, traj.alive)
+        metrics["value/mean"] = jnp.mean(team_values)
+        stats = RolloutStats(values=team_values, advantages=team_adv, dones=traj.done,
+                             rewards=traj.reward, wins=traj.won)
+        new_state = TrainState(params=params, opt_state=opt_state,
+                               update=train_state.update + 1)
+        return new_state, metrics, stats
+
+
+def episode_metrics(records: dict[str, jax.Array]) -> dict[str, jax.Array]:
+    """Means over the episodes that ended in the rollout (NaN when none did)."""
+    done = records["done"]
+    count = jnp.sum(done).astype(jnp.float32)
+    per = lambda x: jnp.where(count > 0, jnp.sum(x.astype(jnp.float32)) / jnp.maximum(count, 1),
+                              jnp.nan)
+    return {"episode/count": count, "episode/win_rate": per(records["won"]),
+            "episode/return": per(records["return"]), "episode/length": per(records["length"]),
+            "episode/first_kill_rate": per(records["first_kill"])}
+
+
+@functools.lru_cache(maxsize=8)
+def _cached(cls: type, env_config: EnvConfig, ppo: PPOConfig, team: int, opponent: Controller
+            ) -> PPOLearner:
+    return cls(env_config, ppo, team, opponent)
+
+
+def cached_learner(cls: type, env_config: EnvConfig, ppo: PPOConfig, team: str | int,
+                   opponent: str | Controller) -> PPOLearner:
+    """One learner (and so one compiled update) per distinct static setting in a process."""
+    team = team if isinstance(team, int) else ("ally", "enemy").index(team)
+    opponent = opponent if isinstance(opponent, Controller) else Controller.parse(opponent)
+    return _cached(cls, env_config, ppo, team, opponent)
+
+
+__all__ = ["PPOLearner", "RolloutStats", "TrainState", "Transition", "cached_learner",
+           "episode_metrics", "gae", "masked_logits", "masked_mean", "normalise",
+           "policy_terms", "ppo_policy_loss", "team_mean", "value_loss"]
