@@ -18,17 +18,10 @@ import sys
 from tabx.cli import UserError
 
 
-def _cpu_tuning() -> None:
-    from ued.learners.cpu import tune_allocator
-
-    tune_allocator()
-
-
 def cmd_train(args: argparse.Namespace) -> int:
     from ued.config import ConfigError, load_config
     from ued.train import train
 
-    _cpu_tuning()
     positional = list(args.items)
     config_path = None
     if positional and "=" not in positional[0]:
@@ -65,7 +58,6 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from ued.config import ConfigError
     from ued.evaluate import TrainedPolicy, format_result, load_policy, parse_side, play
 
-    _cpu_tuning()
     if args.episodes < 1:
         raise UserError(f"--episodes must be >= 1, got {args.episodes}")
     try:
@@ -154,7 +146,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     ev = subparsers.add_parser(
         "eval", help="evaluate trained policies (win rate, return, episode length)",
         description="Play episodes with trained policies and print win rate, return and "
-                    "episode length with 95%% confidence intervals.")
+                    "episode length with 95% confidence intervals.")
     ev.add_argument("run_dir", nargs="?", help="run folder of the policy to evaluate")
     ev.add_argument("--scenario", help="scenario name or file (default: the run's first)")
     ev.add_argument("--ally", help="who plays the ally team: a run folder or a controller")

@@ -109,14 +109,18 @@ class Progress:
         self._last = -math.inf
 
     def show(self, update: int, steps: int, steps_per_s: float, eta_s: float,
-             win_rate: float, final: bool = False) -> None:
+             win_rate: float, final: bool = False, first_update_s: float | None = None
+             ) -> None:
         now = time.monotonic()
         if not (self.tty or final or now - self._last >= self.every_s):
             return
         self._last = now
         win = "-" if not math.isfinite(win_rate) else f"{win_rate:.2f}"
-        line = (f"update {update}/{self.total}  {steps:,} steps  {steps_per_s:,.0f} steps/s  "
-                f"ETA {format_duration(eta_s)}  win {win}")
+        if first_update_s is not None:
+            rate = f"first update {first_update_s:.1f} s (compilation included)"
+        else:
+            rate = f"{steps_per_s:,.0f} steps/s  ETA {format_duration(eta_s)}"
+        line = f"update {update}/{self.total}  {steps:,} steps  {rate}  win {win}"
         if self.tty:
             self.stream.write("\r" + line.ljust(90) + ("\n" if final else ""))
         else:
@@ -223,9 +227,10 @@ def _log(writer: SummaryWriter, bar: Progress | None, callback, done: int,
     steps = done * steps_per_update
     writer.scalars(values, step=steps)
     if bar is not None:
-        eta = (num_updates - done) * steps_per_update / steps_per_s if steps_per_s > 0 else math.nan
-        bar.show(done, steps, steps_per_s if math.isfinite(steps_per_s) else 0.0, eta,
-                 values.get("episode/win_rate", math.nan), final=last)
+        rate = steps_per_s if math.isfinite(steps_per_s) and steps_per_s > 0 else math.nan
+        eta = (num_updates - done) * steps_per_update / rate
+        bar.show(done, steps, rate, eta, values.get("episode/win_rate", math.nan), final=last,
+                 first_update_s=values.get("time/first_update_s"))
     if callback is not None:
         callback(done, train_state, values)
 

@@ -5,8 +5,10 @@ minibatches, hidden 128) on a scenario (default crossfire) against an opponent (
 medium heuristic). The first update is timed from the call to its result, compilation
 included; then `--updates` more updates are timed one by one (`block_until_ready`), and the
 steady-state throughput is env steps per update / median seconds per update. A fresh learner is
-built for each algorithm (no compiled function is reused), and the level batch is a jit
-argument, as in training. The allocator tuning of `tabx train` (ued.learners.cpu) is on.
+built for each algorithm (no compiled function is reused; a persistent compilation cache, if
+the user configured one, is switched off for the run), and the level batch is a jit argument,
+as in training. `--reference-like` trains with the reference's structure instead (see
+`reference_like`), to compare on the same machine at the same moment.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import json
 import statistics
 import time
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -24,6 +27,7 @@ import jax.numpy as jnp
 @dataclass
 class TrainBenchResult:
     algorithm: str
+    variant: str  # "ours" or "reference-like"
     scenario: str
     opponent: str
     num_envs: int
@@ -34,28 +38,69 @@ class TrainBenchResult:
     updates: int
 
 
+def reference_like(learner: Any) -> Any:
+    """Give `learner` the reference's training structure, for comparison: each network as a
+    plain per-step scan differentiated by autodiff (no rematerialisation, no unrolling) and,
+    for MAPPO, the critic run once per agent on a copy of the world state (JaxMARL's
+    `mappo_rnn.py`). Same maths, other speed; the fused GRU matmuls, the rollout and the
+    simulator stay ours."""
+    from ued.learners import networks as nw
+
+    def plain(p, x, starts, h0):
+        def body(h, inputs):
+            x_t, start_t = inputs
+            return nw.step(p, x_t, jnp.where(start_t[:, None], 0.0, h))
+
+        return jax.lax.scan(body, h0, (x, starts))[1]
+
+    hidden = learner.ppo.hidden_dim
+
+    def evaluate_sequence(params, x, world, starts):
+        steps, envs, agents = x.shape[:3]
+        flat = x.reshape(steps, envs * agents, x.shape[-1])
+        agent_starts = jnp.repeat(starts, agents, axis=1)
+        h0 = jnp.zeros((envs * agents, hidden), jnp.float32)
+        if not learner.centralised:
+            out = plain(params["net"], flat, agent_starts, h0).reshape(steps, envs, agents, -1)
+            return out[..., :-1], out[..., -1]
+        logits = plain(params["actor"], flat, agent_starts, h0)
+        per_agent_world = jnp.repeat(world, agents, axis=1)
+        values = plain(params["critic"], per_agent_world, agent_starts, h0)
+        return (logits.reshape(steps, envs, agents, -1),
+                values.reshape(steps, envs, agents).mean(-1))
+
+    learner.evaluate_sequence = evaluate_sequence
+    return learner
+
+
 def run_train_bench(algorithm: str, scenario: str = "crossfire",
                     opponent: str = "heuristic:medium", num_envs: int = 128,
-                    num_steps: int = 512, updates: int = 3) -> TrainBenchResult:
+                    num_steps: int = 512, updates: int = 3,
+                    variant: str = "ours") -> TrainBenchResult:
     from tabx.params import repeat_level
     from tabx.scenarios import config_for, load_named
     from ued.config import PPOConfig
     from ued.learners import make_learner
-    from ued.learners.cpu import tune_allocator
 
-    tune_allocator()
     level_scenario = load_named(scenario)
     env_config = config_for([level_scenario])
     levels = jax.tree.map(jnp.array, repeat_level(level_scenario.to_level(env_config), num_envs))
     ppo = PPOConfig(num_envs=num_envs, num_steps=num_steps)
     learner = make_learner(algorithm, env_config, ppo, "ally", opponent, cached=False)
+    if variant == "reference-like":
+        reference_like(learner)
     key = jax.random.key(0)
     state = learner.init(key)
-    t0 = time.perf_counter()
-    key, k = jax.random.split(key)
-    state, metrics, _ = learner.update(state, levels, k)
-    jax.block_until_ready((state, metrics))
-    first = time.perf_counter() - t0
+    cache = jax.config.jax_enable_compilation_cache
+    jax.config.update("jax_enable_compilation_cache", False)  # a cold compile, always
+    try:
+        t0 = time.perf_counter()
+        key, k = jax.random.split(key)
+        state, metrics, _ = learner.update(state, levels, k)
+        jax.block_until_ready((state, metrics))
+        first = time.perf_counter() - t0
+    finally:
+        jax.config.update("jax_enable_compilation_cache", cache)
     times = []
     for _ in range(updates):
         key, k = jax.random.split(key)
@@ -64,20 +109,23 @@ def run_train_bench(algorithm: str, scenario: str = "crossfire",
         jax.block_until_ready((state, metrics))
         times.append(time.perf_counter() - t0)
     median = statistics.median(times) if times else float("nan")
-    return TrainBenchResult(algorithm, scenario, opponent, num_envs, num_steps, first, median,
-                            num_envs * num_steps / median, updates)
+    return TrainBenchResult(algorithm, variant, scenario, opponent, num_envs, num_steps, first,
+                            median, num_envs * num_steps / median, updates)
 
 
 def bench_train(args: argparse.Namespace) -> int:
     from tabx.bench import machine_summary
 
+    variant = "reference-like" if args.reference_like else "ours"
     print(f"# tabx bench train on {machine_summary()}; {args.scenario} vs {args.opponent}, "
-          f"{args.num_envs} envs x {args.num_steps} steps per update", flush=True)
+          f"{args.num_envs} envs x {args.num_steps} steps per update"
+          f"{'; reference-like training structure' if args.reference_like else ''}",
+          flush=True)
     print(f"{'algorithm':>9} {'first update s':>14} {'update s':>9} {'steps/s':>10}", flush=True)
     results = []
     for algorithm in args.algorithms:
         r = run_train_bench(algorithm, args.scenario, args.opponent, args.num_envs,
-                            args.num_steps, args.updates)
+                            args.num_steps, args.updates, variant)
         results.append(r)
         print(f"{algorithm:>9} {r.first_update_s:>14.1f} {r.update_s:>9.2f} "
               f"{r.steps_per_s:>10,.0f}", flush=True)
@@ -125,6 +173,9 @@ def add_train_bench(which: argparse._SubParsersAction) -> None:
                    help="rollout steps per update (default 512)")
     p.add_argument("--updates", type=_positive, default=3,
                    help="timed updates after the first (median; default 3)")
+    p.add_argument("--reference-like", action="store_true",
+                   help="train with the reference's structure instead (plain autodiff scans, "
+                        "MAPPO critic per agent), for comparison")
     p.add_argument("--json", help="also write results as JSON lines to this file")
     p.set_defaults(func=bench_train)
 

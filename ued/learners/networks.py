@@ -27,8 +27,12 @@ Params = dict
 LN_EPS = 1e-6
 # Time steps per iteration of the training scans: a loop iteration has a fixed cost on XLA:CPU
 # that is large next to one step of a 96-row minibatch; 4 steps per iteration made a whole
-# update about 1.4x faster than 1 (8 and 16 were no faster and compile longer).
+# update about 1.4x faster than 1, for 3 s more compilation (MAPPO's update compiled in 9.5 s
+# with 1, 12.6 s with 4); 8 and 16 were no faster and compile longer still. Networks smaller
+# than UNROLL_MIN_SIZE (rows x hidden units per step, summed over the networks of the scan)
+# train fast anyway, and for them compilation dominates: they are not unrolled.
 SEQUENCE_UNROLL = 4
+UNROLL_MIN_SIZE = 64 * 128
 
 
 # --- initialisation --------------------------------------------------------------------------
@@ -152,8 +156,10 @@ def sequences(params: tuple[Params, ...], xs: tuple[jax.Array, ...],
 
     body = jax.checkpoint(body, prevent_cse=False,
                           policy=jax.checkpoint_policies.nothing_saveable)
+    size = sum(h.shape[0] * h.shape[-1] for h in h0s)
+    unroll = SEQUENCE_UNROLL if size >= UNROLL_MIN_SIZE else 1
     return jax.lax.scan(body, tuple(h0s), tuple(zip(xs, starts, strict=True)),
-                        unroll=SEQUENCE_UNROLL)[1]
+                        unroll=unroll)[1]
 
 
 def sequence(p: Params, x: jax.Array, starts: jax.Array, h0: jax.Array) -> jax.Array:

@@ -343,8 +343,7 @@ class PPOLearner:
             return carry, (transition, record)
 
         keys = jax.random.split(key, self.ppo.num_steps)
-        (states, obs, hidden, _, _, _), (traj, records) = jax.lax.scan(
-            body, carry, keys, unroll=int(__import__('os').environ.get('TABX_RU','1')))
+        (states, obs, hidden, _, _, _), (traj, records) = jax.lax.scan(body, carry, keys)
         world = self._world(states, levels)
         _, _, last_value = self.act_step(params, self.agent_inputs(obs[:, self.slots]), world,
                                          hidden)
