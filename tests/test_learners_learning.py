@@ -1,4 +1,5 @@
-"""Learning test: MAPPO with the paper's PPO settings learns to win a small battle.
+"""Learning test: MAPPO (and, with -m slow, IPPO) with the paper's PPO settings learns to win a
+small battle.
 
 Two archers face +x; a farmer (driven by the random controller) stands above them, outside
 their field of view, so an untrained policy rarely turns and shoots and mostly loses on
@@ -12,13 +13,15 @@ import math
 
 import jax
 import jax.numpy as jnp
+import pytest
 
 from tabx.params import EnvConfig, make_level, repeat_level
 from ued.config import PPOConfig
 from ued.learners import make_learner
 
 
-def test_mappo_learns_two_archers_against_a_farmer():
+@pytest.mark.parametrize("algorithm", ["mappo", pytest.param("ippo", marks=pytest.mark.slow)])
+def test_learns_two_archers_against_a_farmer(algorithm):
     config = EnvConfig(max_allies=2, max_enemies=1, max_zones=0, max_steps=64)
     level = make_level(
         config,
@@ -29,7 +32,7 @@ def test_mappo_learns_two_archers_against_a_farmer():
     levels = jax.tree.map(jnp.asarray, repeat_level(level, num_envs))
     ppo = PPOConfig(num_envs=num_envs, num_steps=num_steps, hidden_dim=64,
                     total_timesteps=num_envs * num_steps * updates)
-    learner = make_learner("mappo", config, ppo, team="ally", opponent="random")
+    learner = make_learner(algorithm, config, ppo, team="ally", opponent="random")
     state = learner.init(jax.random.key(0))
     key = jax.random.key(1)
     win_rates = []

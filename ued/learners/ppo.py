@@ -250,8 +250,10 @@ class PPOLearner:
         steps_per_update = ppo.update_epochs * ppo.num_minibatches
 
         def schedule(count: jax.Array) -> jax.Array:
+            # Linear decay to 0 over the run (the reference's formula); 0 past the end, never
+            # negative, should a caller (a curriculum) run more updates than planned.
             frac = 1.0 - (count // steps_per_update) / self.num_updates
-            return ppo.lr * frac
+            return ppo.lr * jnp.maximum(frac, 0.0)
 
         lr = schedule if ppo.anneal_lr else ppo.lr
 
