@@ -154,12 +154,18 @@ def bench_env(args: argparse.Namespace) -> int:
         print(f"{f'{team}v{team}':>6} {zones:>5} {envs:>6} {r.compile_s:>9.2f} {r.run_s:>8.3f} "
               f"{r.steps_per_s:>12,.0f}   [{i + 1}/{len(configs)}, eta {eta:.0f}s]", flush=True)
     if args.json:
-        from tabx.files import atomic_write_text
-        lines = "".join(json.dumps({**asdict(r), "machine": machine_summary()}) + "\n"
-                        for r in results)
-        atomic_write_text(args.json, lines)
-        print(f"wrote {args.json}")
+        write_results(args.json, results)
     return 0
+
+
+def write_results(path: str, results: list) -> None:
+    """Benchmark results (dataclasses) as JSON lines with the machine summary, atomically."""
+    from tabx.files import atomic_write_text
+
+    machine = machine_summary()
+    atomic_write_text(path, "".join(json.dumps({**asdict(r), "machine": machine}) + "\n"
+                                    for r in results))
+    print(f"wrote {path}")
 
 
 def _positive_ints(text: str) -> list[int]:

@@ -14,10 +14,9 @@ as in training. `--reference-like` trains with the reference's structure instead
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Any
 
 import jax
@@ -114,7 +113,7 @@ def run_train_bench(algorithm: str, scenario: str = "crossfire",
 
 
 def bench_train(args: argparse.Namespace) -> int:
-    from tabx.bench import machine_summary
+    from tabx.bench import machine_summary, write_results
 
     variant = "reference-like" if args.reference_like else "ours"
     print(f"# tabx bench train on {machine_summary()}; {args.scenario} vs {args.opponent}, "
@@ -130,12 +129,7 @@ def bench_train(args: argparse.Namespace) -> int:
         print(f"{algorithm:>9} {r.first_update_s:>14.1f} {r.update_s:>9.2f} "
               f"{r.steps_per_s:>10,.0f}", flush=True)
     if args.json:
-        from tabx.files import atomic_write_text
-
-        lines = "".join(json.dumps({**asdict(r), "machine": machine_summary()}) + "\n"
-                        for r in results)
-        atomic_write_text(args.json, lines)
-        print(f"wrote {args.json}")
+        write_results(args.json, results)
     return 0
 
 
