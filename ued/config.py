@@ -29,17 +29,13 @@ from typing import Any
 
 import yaml
 
+from ued.errors import ConfigError
+from ued.errors import check as _check
+
 ALGORITHMS = ("mappo", "ippo")
 TEAMS = ("ally", "enemy")
 
 
-class ConfigError(ValueError):
-    """A config that cannot be used; the message names the source, the key and the problem."""
-
-
-def _check(cond: bool, key: str, message: str) -> None:
-    if not cond:
-        raise ConfigError(f"{key}: {message}")
 
 
 @dataclass(frozen=True)
