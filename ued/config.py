@@ -36,8 +36,6 @@ ALGORITHMS = ("mappo", "ippo")
 TEAMS = ("ally", "enemy")
 
 
-
-
 @dataclass(frozen=True)
 class EnvSection:
     """What is played: the scenario(s), the learner's team and who plays the other team."""
