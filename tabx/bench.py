@@ -1,4 +1,5 @@
-"""`tabx bench env`: simulator throughput and compile time.
+"""`tabx bench env`: simulator throughput and compile time. `tabx bench scale | reconfig |
+compare` (issue #5) build on the machinery here: tabx/bench_suite.py.
 
 `--ally` / `--enemy` choose each team's controller (tabx.controllers): the heuristic protocol
 of issue #3 is `--enemy heuristic:medium` (random allies, scripted enemies).
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import statistics
 import sys
@@ -49,6 +51,7 @@ class BenchResult:
     run_s: float
     steps_per_s: float
     controllers: str = "random/random"
+    load_avg: float | None = None  # 1-minute load average when the run started (shared machines)
 
 
 def bench_level(team_size: int, num_zones: int) -> tuple[EnvConfig, EnvParams]:
@@ -105,20 +108,49 @@ def run_one(team_size: int, num_zones: int, num_envs: int, steps: int = 128,
     env = TabxEnv(config)
     levels = repeat_level(with_tiers(level, controllers), num_envs)
     levels = jax.tree.map(lambda x: jnp.array(x), levels)  # materialise: a real argument
-    key = jax.random.key(0)
     fn = make_rollout(env, steps, with_obs, controllers)
+    load_avg = load_average()
+    compile_s, run_s = time_compiled(fn, lambda key: (levels, key), repeats)
+    return BenchResult(team_size, num_zones, num_envs, with_obs, steps, compile_s, run_s,
+                       num_envs * steps / run_s, "/".join(map(str, controllers)), load_avg)
+
+
+def time_compiled(fn, make_args, repeats: int = 3) -> tuple[float, float]:
+    """(compile seconds, median run seconds) of a jitted fn: lower + compile timed, one warm-up
+    call, then `repeats` timed calls; `make_args(key)` gives the arguments of each call."""
     t0 = time.perf_counter()
-    compiled = fn.lower(levels, key).compile()
+    compiled = fn.lower(*make_args(jax.random.key(0))).compile()
     compile_s = time.perf_counter() - t0
-    jax.block_until_ready(compiled(levels, key))  # warm-up
+    jax.block_until_ready(compiled(*make_args(jax.random.key(0))))  # warm-up
     times = []
     for i in range(repeats):
+        args = make_args(jax.random.key(i + 1))
         t0 = time.perf_counter()
-        jax.block_until_ready(compiled(levels, jax.random.key(i + 1)))
+        jax.block_until_ready(compiled(*args))
         times.append(time.perf_counter() - t0)
-    run_s = statistics.median(times)
-    return BenchResult(team_size, num_zones, num_envs, with_obs, steps, compile_s, run_s,
-                       num_envs * steps / run_s, "/".join(map(str, controllers)))
+    return compile_s, statistics.median(times)
+
+
+def load_average() -> float | None:
+    """The 1-minute load average (None where the OS has none): next to every timing, since
+    the benchmark machines are often shared."""
+    try:
+        return round(os.getloadavg()[0], 2)
+    except OSError:
+        return None
+
+
+class Progress:
+    """`[i/n, eta Ns]` suffixes for progress lines: eta from the mean time per item so far."""
+
+    def __init__(self, total: int):
+        self.total, self.done, self.start = total, 0, time.perf_counter()
+
+    def step(self) -> str:
+        self.done += 1
+        elapsed = time.perf_counter() - self.start
+        eta = elapsed / self.done * (self.total - self.done)
+        return f"[{self.done}/{self.total}, eta {eta:.0f}s]"
 
 
 def machine_summary() -> str:
@@ -144,27 +176,27 @@ def bench_env(args: argparse.Namespace) -> int:
           f"{'steps/s':>12}", flush=True)
     results = []
     configs = [(t, z, n) for t in args.team_sizes for z in args.zones for n in args.num_envs]
-    t_start = time.perf_counter()
-    for i, (team, zones, envs) in enumerate(configs):
+    progress = Progress(len(configs))
+    for team, zones, envs in configs:
         r = run_one(team, zones, envs, steps=args.steps, repeats=args.repeats, with_obs=args.obs,
                     controllers=controllers)
         results.append(r)
-        elapsed = time.perf_counter() - t_start
-        eta = elapsed / (i + 1) * (len(configs) - i - 1)
         print(f"{f'{team}v{team}':>6} {zones:>5} {envs:>6} {r.compile_s:>9.2f} {r.run_s:>8.3f} "
-              f"{r.steps_per_s:>12,.0f}   [{i + 1}/{len(configs)}, eta {eta:.0f}s]", flush=True)
+              f"{r.steps_per_s:>12,.0f}   {progress.step()}", flush=True)
     if args.json:
         write_results(args.json, results)
     return 0
 
 
 def write_results(path: str, results: list) -> None:
-    """Benchmark results (dataclasses) as JSON lines with the machine summary, atomically."""
+    """Benchmark results (dataclasses or dicts) as JSON lines with the machine summary,
+    atomically."""
     from tabx.files import atomic_write_text
 
     machine = machine_summary()
-    atomic_write_text(path, "".join(json.dumps({**asdict(r), "machine": machine}) + "\n"
-                                    for r in results))
+    atomic_write_text(path, "".join(
+        json.dumps({**(r if isinstance(r, dict) else asdict(r)), "machine": machine}) + "\n"
+        for r in results))
     print(f"wrote {path}")
 
 
@@ -201,6 +233,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                           "heuristic:medium)")
     env.add_argument("--json", help="also write results as JSON lines to this file")
     env.set_defaults(func=bench_env)
+    from tabx.bench_suite import add_suite_parsers  # scale, reconfig, compare (issue #5)
+
+    add_suite_parsers(which)
     try:  # the learners' benchmark lives with the learners (ued/learners/bench.py)
         from ued.learners.bench import add_train_bench
     except ModuleNotFoundError as err:
