@@ -4,10 +4,13 @@
     tabx train --resume RUN_DIR
     tabx eval RUN_DIR [--scenario NAME] [--enemy heuristic:medium] [--episodes K] [--gif PATH]
     tabx eval --ally RUN_A --enemy RUN_B [--scenario NAME]
+    tabx eval RUN_DIR --suite NAME_OR_FILE [--episodes K] [--json OUT] [--seed S]
+    tabx eval --list-suites
 
 A side of `tabx eval` (`--ally`, `--enemy`) is a run folder or a controller
 (`heuristic[:TIER]`, `random`, `idle`); the positional RUN_DIR plays the team it was trained
-for, and the team nobody names plays the run's training opponent.
+for, and the team nobody names plays the run's training opponent. `--suite` evaluates the
+run zero-shot on every entry of an evaluation suite (`ued.suites`, `workers.evaluator`).
 """
 
 from __future__ import annotations
@@ -16,6 +19,8 @@ import argparse
 import sys
 
 from tabx.cli import UserError
+
+DEFAULT_EPISODES = 100  # of `tabx eval` without --suite
 
 
 def cmd_train(args: argparse.Namespace) -> int:
@@ -58,8 +63,15 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from ued.config import ConfigError
     from ued.evaluate import TrainedPolicy, format_result, load_policy, parse_side, play
 
-    if args.episodes < 1:
+    if args.list_suites:
+        return _list_suites()
+    if args.episodes is not None and args.episodes < 1:
         raise UserError(f"--episodes must be >= 1, got {args.episodes}")
+    if args.suite is not None:
+        return _eval_suite(args)
+    if args.json:
+        raise UserError("--json goes with --suite")
+    episodes = DEFAULT_EPISODES if args.episodes is None else args.episodes
     try:
         sides: list = [None, None]
         run = load_policy(args.run_dir, args.checkpoint) if args.run_dir else None
@@ -94,13 +106,55 @@ def cmd_eval(args: argparse.Namespace) -> int:
             level = scenario.to_level(env_config)
         except ScenarioError as err:
             raise UserError(f"{err} (the policy's EnvConfig: {env_config})") from None
-        result = play(env_config, level, sides[0], sides[1], args.episodes, seed=args.seed,
+        result = play(env_config, level, sides[0], sides[1], episodes, seed=args.seed,
                       greedy=args.greedy, record=bool(args.gif))
     except ConfigError as err:
         raise UserError(str(err)) from None
     print(format_result(result, (sides[0], sides[1]), scenario.name, args.greedy))
     if args.gif:
         _write_gif(args.gif, env_config, level, sides, result)
+    return 0
+
+
+def _list_suites() -> int:
+    from ued.suites import list_suites, load_suite
+
+    for name in list_suites():
+        suite = load_suite(name)
+        print(f"{name:30s} {len(suite.entries)} entries  {suite.description}")
+    return 0
+
+
+def _eval_suite(args: argparse.Namespace) -> int:
+    """`tabx eval RUN_DIR --suite NAME_OR_FILE`: a table per suite, JSON with --json."""
+    import jax
+
+    from tabx.files import atomic_write_json
+    from ued.config import ConfigError
+    from ued.evaluate import load_policy
+    from ued.suites import load_suite
+    from workers.evaluator import Evaluator, format_table, to_json
+
+    clash = [flag for flag, value in (("--scenario", args.scenario), ("--ally", args.ally),
+                                      ("--enemy", args.enemy), ("--gif", args.gif)) if value]
+    if clash:
+        raise UserError(f"--suite names the scenarios and opponents itself; drop {clash[0]}")
+    if not args.run_dir:
+        raise UserError("--suite evaluates a run folder: give RUN_DIR")
+    try:
+        suite = load_suite(args.suite)
+        policy = load_policy(args.run_dir, args.checkpoint)
+        evaluator = Evaluator(policy.learner, suite, episodes=args.episodes, greedy=args.greedy)
+        result = evaluator.evaluate(policy.params, jax.random.key(args.seed))
+    except ConfigError as err:
+        raise UserError(str(err)) from None
+    print(f"policy {policy}")
+    print(format_table(result))
+    if args.json:
+        data = {"run_dir": str(policy.run_dir), "algorithm": policy.config.algorithm,
+                "update": policy.update, "seed": args.seed, **to_json(result)}
+        atomic_write_json(args.json, data)
+        print(f"wrote {args.json}")
     return 0
 
 
@@ -152,7 +206,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     ev.add_argument("--ally", help="who plays the ally team: a run folder or a controller")
     ev.add_argument("--enemy", help="who plays the enemy team: a run folder or a controller "
                                     "(heuristic:TIER, random, idle)")
-    ev.add_argument("--episodes", type=int, default=100, help="episodes (default 100)")
+    ev.add_argument("--episodes", type=int,
+                    help=f"episodes (default {DEFAULT_EPISODES}; with --suite: per entry, "
+                         f"default the suite's)")
     ev.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     ev.add_argument("--greedy", action="store_true",
                     help="take the most likely action instead of sampling")
@@ -161,6 +217,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     ev.add_argument("--max-steps", type=int, default=512,
                     help="episode limit when no run folder gives one (default 512)")
     ev.add_argument("--gif", metavar="PATH", help="also render episode 0 as an animated GIF")
+    ev.add_argument("--suite", metavar="NAME_OR_FILE",
+                    help="evaluate RUN_DIR on every entry of an evaluation suite (a shipped "
+                         "suite's name, see --list-suites, or a .yaml file)")
+    ev.add_argument("--json", metavar="OUT", help="with --suite: also write the results as JSON")
+    ev.add_argument("--list-suites", action="store_true",
+                    help="list the shipped evaluation suites and exit")
     ev.set_defaults(func=cmd_eval)
 
 __all__ = ["add_parser", "cmd_eval", "cmd_train"]

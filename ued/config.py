@@ -1,12 +1,14 @@
 """Training configs: YAML files validated into typed, frozen dataclasses.
 
-A config has three sections and two top-level keys:
+A config has five sections and two top-level keys:
 
     algorithm: mappo          # mappo | ippo
     seed: 0
     env:     {scenario, team, opponent, max_steps}
     learner: {PPO hyperparameters, num_envs, num_steps, total_timesteps}
     run:     {name, dir, checkpoint_every, keep_checkpoints, log_every}
+    ued:     {method, score, buffer and SFL settings, evaluation suites}   (UEDSection)
+    levels:  {free parameters and their ranges}                  (ued.levels.LevelSpace)
 
 Every field has a default (the paper's table "IPPO and MAPPO hyperparameters" and the
 reference's defaults, TABX_REFERENCE.md section 11), so a file only lists what differs.
@@ -31,6 +33,7 @@ import yaml
 
 from ued.errors import ConfigError
 from ued.errors import check as _check
+from ued.levels import LevelSpace
 
 ALGORITHMS = ("mappo", "ippo")
 TEAMS = ("ally", "enemy")
@@ -130,6 +133,66 @@ class RunSection:
                f"must be a plain folder name, got {self.name!r}")
 
 
+UED_METHODS = ("none", "dr", "plr", "robust_plr", "accel", "sfl")
+UED_SCORES = ("max_mc", "pvl")
+
+
+@dataclass(frozen=True)
+class UEDSection:
+    """Unsupervised environment design: the curriculum, its level buffer and its evaluation.
+
+    Defaults: the paper's table "UED Hyperparameters" (buffer 4000, staleness 0.3, rank
+    prioritisation, temperature 0.3, replay rate 0.8) and the reference code for what the
+    paper does not state (minimum fill 0.5, duplicate check, MaxMC, top-k 4, SFL settings).
+    `method: none` trains on the scenarios of `env.scenario` as they are."""
+
+    method: str = "none"  # none | dr | plr | robust_plr | accel | sfl
+    score: str = "max_mc"  # max_mc | pvl: the regret estimate that ranks buffer levels
+    buffer_size: int = 4000
+    replay_prob: float = 0.8
+    staleness_coef: float = 0.3
+    min_fill_ratio: float = 0.5
+    prioritization: str = "rank"  # rank | topk
+    temperature: float = 0.3
+    topk: int = 4  # levels in the softmax of top-k prioritisation
+    duplicate_check: bool = True
+    exploratory_grad_updates: bool | None = None  # None: the method's own (PLR yes, else no)
+    sfl_batch_size: int = 5000  # random levels scored per learnability batch
+    sfl_num_batches: int = 5
+    sfl_rollout_steps: int = 2000  # steps each learnability level is played
+    sfl_top_k: int = 1000  # size of the learnable set
+    sfl_update_freq: int = 64  # steps between rebuilds of the learnable set
+    sfl_fresh_fraction: float = 0.5  # share of fresh random levels in each SFL batch
+    eval_suites: tuple[str, ...] = ()  # zero-shot suites (configs/eval) run during training
+    eval_every: int = 10  # steps between evaluations (and at the end)
+    eval_episodes: int = 0  # episodes per suite entry; 0: each suite's own
+
+    @property
+    def enabled(self) -> bool:
+        return self.method != "none"
+
+    def validate(self, prefix: str = "ued") -> None:
+        _check(self.method in UED_METHODS, f"{prefix}.method",
+               f"must be one of {', '.join(UED_METHODS)}, got {self.method!r}")
+        _check(self.score in UED_SCORES, f"{prefix}.score",
+               f"must be one of {', '.join(UED_SCORES)}, got {self.score!r}")
+        _check(self.prioritization in ("rank", "topk"), f"{prefix}.prioritization",
+               f"must be rank or topk, got {self.prioritization!r}")
+        for name in ("buffer_size", "topk", "sfl_batch_size", "sfl_num_batches",
+                     "sfl_rollout_steps", "sfl_top_k", "sfl_update_freq", "eval_every"):
+            value = getattr(self, name)
+            _check(value >= 1, f"{prefix}.{name}", f"must be >= 1, got {value}")
+        for name in ("replay_prob", "staleness_coef", "min_fill_ratio", "sfl_fresh_fraction"):
+            value = getattr(self, name)
+            _check(0.0 <= value <= 1.0, f"{prefix}.{name}", f"must be in [0, 1], got {value}")
+        _check(self.temperature > 0, f"{prefix}.temperature",
+               f"must be > 0, got {self.temperature}")
+        _check(self.eval_episodes >= 0, f"{prefix}.eval_episodes",
+               f"must be >= 0 (0: the suite's own), got {self.eval_episodes}")
+        _check(all(isinstance(s, str) and s for s in self.eval_suites), f"{prefix}.eval_suites",
+               "suite names must be non-empty strings")
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """A whole training run."""
@@ -139,6 +202,8 @@ class TrainConfig:
     env: EnvSection = field(default_factory=EnvSection)
     learner: PPOConfig = field(default_factory=PPOConfig)
     run: RunSection = field(default_factory=RunSection)
+    ued: UEDSection = field(default_factory=UEDSection)
+    levels: LevelSpace = field(default_factory=LevelSpace)
 
     def validate(self) -> TrainConfig:
         _check(self.algorithm in ALGORITHMS, "algorithm",
@@ -146,6 +211,15 @@ class TrainConfig:
         self.env.validate()
         self.learner.validate()
         self.run.validate()
+        self.ued.validate()
+        self.levels.validate()
+        if self.ued.enabled and "heuristic" in self.levels.free_params:
+            from tabx.controllers import Controller
+
+            _check(Controller.parse(self.env.opponent).tier is None, "env.opponent",
+                   f"{self.env.opponent!r} writes its tier into every level, which would undo "
+                   "the generated heuristic parameters (levels.free includes heuristic): use "
+                   "'heuristic' (the level's own parameters)")
         return self
 
     @property
@@ -154,11 +228,14 @@ class TrainConfig:
             return self.run.name
         scenario = Path(self.env.scenario[0]).stem
         more = f"+{len(self.env.scenario) - 1}" if len(self.env.scenario) > 1 else ""
-        return f"{self.algorithm}_{scenario}{more}"
+        method = f"{self.ued.method}_" if self.ued.enabled else ""
+        return f"{method}{self.algorithm}_{scenario}{more}"
 
     def to_dict(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)
         out["env"]["scenario"] = list(self.env.scenario)
+        out["ued"]["eval_suites"] = list(self.ued.eval_suites)
+        out["levels"] = self.levels.to_dict()
         return out
 
     def to_yaml(self) -> str:
@@ -328,5 +405,6 @@ def apply_overrides(data: Any, overrides: Sequence[str], source: str = "config")
     return out
 
 
-__all__ = ["ALGORITHMS", "TEAMS", "ConfigError", "EnvSection", "PPOConfig", "RunSection",
-           "TrainConfig", "apply_overrides", "config_from_dict", "load_config"]
+__all__ = ["ALGORITHMS", "TEAMS", "UED_METHODS", "UED_SCORES", "ConfigError", "EnvSection",
+           "PPOConfig", "RunSection", "TrainConfig", "UEDSection", "apply_overrides",
+           "config_from_dict", "load_config"]

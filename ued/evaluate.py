@@ -14,6 +14,10 @@ heuristic settings.
 Results per team: win rate with a 95 % Wilson interval (exactly one team wins an episode: a
 time-out goes to the higher health ratio, ties to the enemy), mean undiscounted return and
 mean episode length with 95 % normal intervals.
+
+Zero-shot evaluation on a whole suite of held-out scenarios and opponents (`tabx eval RUN_DIR
+--suite NAME`) is `workers.evaluator.Evaluator` on `ued.suites` files (docs/evaluation.md); it
+shares `wilson` and `mean_ci` with this module.
 """
 
 from __future__ import annotations
@@ -225,5 +229,5 @@ def format_result(result: EvalResult, sides: tuple[Side, Side], scenario: str,
     return "\n".join(lines)
 
 
-__all__ = ["EvalResult", "Side", "TrainedPolicy", "format_result", "load_policy", "mean_ci",
-           "parse_side", "play", "wilson"]
+__all__ = ["TEAM_NAMES", "EvalResult", "Side", "TrainedPolicy", "format_result", "load_policy",
+           "mean_ci", "parse_side", "play", "wilson"]

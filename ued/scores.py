@@ -13,6 +13,8 @@ These are JaxUED's definitions (src/jaxued/utils.py), built on `episode_stats`:
 * max_mc             = mean over completed episodes of mean_t (R_max - V_t)  (MaxMC)
 * learnability       = p (1 - p), p = fraction of completed episodes won     (SFL)
 * max_episode_return = the best undiscounted episodic return in the rollout (to update R_max)
+
+`level_scores` turns a learner's `RolloutStats` into the buffer's per-level scores.
 """
 
 from __future__ import annotations
@@ -90,3 +92,30 @@ def learnability(wins: jax.Array, dones: jax.Array) -> jax.Array:
     count = dones.sum(axis=0)
     p = won / jnp.maximum(count, 1)
     return jnp.where(count > 0, p * (1.0 - p), -jnp.inf).astype(jnp.float32)
+
+
+SCORE_FUNCTIONS = ("max_mc", "pvl", "learnability")
+
+
+def level_scores(stats, score: str, stored_max_returns: jax.Array | None = None
+                 ) -> tuple[jax.Array, jax.Array]:
+    """(scores, max returns) per env of a rollout, for the level buffer.
+
+    stats: a `RolloutStats` (values, advantages, dones, rewards, wins, each (T, num_envs));
+    score: one of SCORE_FUNCTIONS; stored_max_returns: (num_envs,) the buffer's R_max of
+    replayed levels (None for new levels). The max return is the rollout's best episode
+    return raised to the stored one; MaxMC uses it as R_max. -inf where no episode ended."""
+    best = max_episode_return(stats.rewards, stats.dones)
+    if stored_max_returns is not None:
+        best = jnp.maximum(best, jnp.asarray(stored_max_returns, jnp.float32))
+    if score == "max_mc":
+        # R_max from this level's history; a level with no finished episode keeps -inf.
+        values = max_mc(stats.values, stats.dones, jnp.where(jnp.isfinite(best), best, 0.0))
+    elif score == "pvl":
+        values = positive_value_loss(stats.advantages, stats.dones)
+    elif score == "learnability":
+        values = learnability(stats.wins, stats.dones)
+    else:
+        raise ValueError(f"unknown score {score!r}; expected one of "
+                         f"{', '.join(SCORE_FUNCTIONS)}")
+    return values, best

@@ -109,8 +109,8 @@ class Progress:
         self._last = -math.inf
 
     def show(self, update: int, steps: int, steps_per_s: float, eta_s: float,
-             win_rate: float, final: bool = False, first_update_s: float | None = None
-             ) -> None:
+             win_rate: float, final: bool = False, first_update_s: float | None = None,
+             extra: str = "") -> None:
         now = time.monotonic()
         if not (self.tty or final or now - self._last >= self.every_s):
             return
@@ -121,8 +121,10 @@ class Progress:
         else:
             rate = f"{steps_per_s:,.0f} steps/s  ETA {format_duration(eta_s)}"
         line = f"update {update}/{self.total}  {steps:,} steps  {rate}  win {win}"
+        if extra:
+            line += f"  ({extra})"
         if self.tty:
-            self.stream.write("\r" + line.ljust(90) + ("\n" if final else ""))
+            self.stream.write("\r" + line.ljust(110) + ("\n" if final else ""))
         else:
             self.stream.write(line + "\n")
         self.stream.flush()
@@ -164,6 +166,11 @@ def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = Non
         run_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(run_dir / CONFIG_FILE, config.to_yaml())
 
+    if config.ued.enabled:
+        from workers.driver import train_ued
+
+        return train_ued(config, run_dir, resume=resume, max_updates=max_updates,
+                         progress=progress, stream=stream, callback=callback)
     env_config, levels = training_levels(config)
     learner = learner_for(config, env_config)
     ppo = config.learner

@@ -206,6 +206,7 @@ class PPOLearner:
         self.state_dim = env_config.state_size
         self.optimizer = self._make_optimizer()
         self.update = jax.jit(self._update, donate_argnums=0)
+        self._score_jit = None
 
     # --- to be provided by MAPPO / IPPO ------------------------------------------------------
 
@@ -293,9 +294,11 @@ class PPOLearner:
         return jax.vmap(lambda k, s, lv, e: controlled_actions(k, s, lv, e, controllers))(
             jax.random.split(key, num_envs), states, levels, external)
 
-    def rollout(self, params: Any, levels: EnvParams, key: jax.Array
+    def rollout(self, params: Any, levels: EnvParams, key: jax.Array,
+                num_steps: int | None = None
                 ) -> tuple[Transition, dict[str, jax.Array], jax.Array, jax.Array]:
-        """Reset every env into its level and play `num_steps` steps.
+        """Reset every env into its level and play `num_steps` steps (default: the PPO
+        config's rollout length).
 
         Returns (transitions (T, E, ...), per-step episode records (T, E), bootstrap value of
         the state after the last step, whether each agent is alive there)."""
@@ -344,7 +347,7 @@ class PPOLearner:
                      jnp.where(done, 0, ep_length), jnp.where(done, 0, first))
             return carry, (transition, record)
 
-        keys = jax.random.split(key, self.ppo.num_steps)
+        keys = jax.random.split(key, self.ppo.num_steps if num_steps is None else num_steps)
         (states, obs, hidden, _, _, _), (traj, records) = jax.lax.scan(body, carry, keys)
         world = self._world(states, levels)
         _, _, last_value = self.act_step(params, self.agent_inputs(obs[:, self.slots]), world,
@@ -391,6 +394,7 @@ class PPOLearner:
         if values.ndim == 3:  # per-agent values: the team reward and done for every agent
             dones, rewards = dones[..., None], rewards[..., None]
         adv, targets = gae(rewards, values, dones, last_value, ppo.gamma, ppo.gae_lambda)
+        stats = self._stats(traj, values, adv)
         starts = jnp.concatenate([jnp.ones((1, num_envs), bool), traj.done[:-1]], axis=0)
         batch = {"obs": traj.obs, "world": traj.world, "mask": traj.mask, "alive": traj.alive,
                  "action": traj.action, "logp": traj.logp, "value": traj.value,
@@ -416,14 +420,41 @@ class PPOLearner:
             jax.random.split(k_train, ppo.update_epochs))
         metrics = {k: jnp.mean(v) for k, v in aux.items()}
         metrics.update(episode_metrics(records))
-        team_values = values if values.ndim == 2 else team_mean(values, traj.alive)
-        team_adv = adv if adv.ndim == 2 else team_mean(adv, traj.alive)
-        metrics["value/mean"] = jnp.mean(team_values)
-        stats = RolloutStats(values=team_values, advantages=team_adv, dones=traj.done,
-                             rewards=traj.reward, wins=traj.won)
+        metrics["value/mean"] = jnp.mean(stats.values)
         new_state = TrainState(params=params, opt_state=opt_state,
                                update=train_state.update + 1)
         return new_state, metrics, stats
+
+
+    @staticmethod
+    def _stats(traj: Transition, values: jax.Array, adv: jax.Array) -> RolloutStats:
+        team_values = values if values.ndim == 2 else team_mean(values, traj.alive)
+        team_adv = adv if adv.ndim == 2 else team_mean(adv, traj.alive)
+        return RolloutStats(values=team_values, advantages=team_adv, dones=traj.done,
+                            rewards=traj.reward, wins=traj.won)
+
+    def _score(self, params: Any, levels: EnvParams, key: jax.Array, num_steps: int
+               ) -> tuple[dict[str, jax.Array], RolloutStats]:
+        levels = self.prepare_levels(levels)
+        traj, records, last_value, last_alive = self.rollout(params, levels, key, num_steps)
+        values, last_value = self.value_terms(traj.value, last_value, traj.alive, last_alive)
+        dones, rewards = traj.done, traj.reward
+        if values.ndim == 3:
+            dones, rewards = dones[..., None], rewards[..., None]
+        adv, _ = gae(rewards, values, dones, last_value, self.ppo.gamma, self.ppo.gae_lambda)
+        return episode_metrics(records), self._stats(traj, values, adv)
+
+    def score(self, params: Any, levels: EnvParams, key: jax.Array,
+              num_steps: int | None = None) -> tuple[dict[str, jax.Array], RolloutStats]:
+        """Roll the policy out on `levels` like `update` does, without learning: (episode
+        metrics, RolloutStats) for scoring new or mutated levels (Robust PLR, ACCEL, SFL).
+        `num_steps` (default: the PPO rollout length) is static: one compile per length."""
+        num_steps = self.ppo.num_steps if num_steps is None else int(num_steps)
+        if num_steps < 1:
+            raise ValueError(f"num_steps must be >= 1, got {num_steps}")
+        if self._score_jit is None:
+            self._score_jit = jax.jit(self._score, static_argnums=3)
+        return self._score_jit(params, levels, key, num_steps)
 
 
 def episode_metrics(records: dict[str, jax.Array]) -> dict[str, jax.Array]:

@@ -1,0 +1,1 @@
+"""Workers that run alongside training: zero-shot evaluation (`workers.evaluator`), ..."""

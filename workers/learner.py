@@ -1,0 +1,39 @@
+"""Learner: the MAPPO / IPPO update on whatever batch of levels it is given.
+
+A thin owner of the learner's train state. It counts its gradient updates on the host
+(`version`, the policy version stamped on every score), so asking for it never waits for the
+device. In local mode the driver calls it directly; a Ray actor wraps the same class.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+
+from tabx.params import EnvParams
+from ued.learners.ppo import PPOLearner, RolloutStats, TrainState
+
+
+class Learner:
+    """Holds the train state; `train(levels, key)` is one jitted rollout + PPO update."""
+
+    def __init__(self, learner: PPOLearner, train_state: TrainState, version: int = 0):
+        self.learner = learner
+        self.train_state = train_state
+        self.version = int(version)
+
+    @property
+    def params(self) -> Any:
+        return self.train_state.params
+
+    def train(self, levels: EnvParams, key: jax.Array
+              ) -> tuple[dict[str, jax.Array], RolloutStats]:
+        """Roll out on `levels` (one env per level) and update the policy; returns the update's
+        metrics and the rollout statistics for scoring (both still on the device)."""
+        self.train_state, metrics, stats = self.learner.update(self.train_state, levels, key)
+        self.version += 1
+        return metrics, stats
+
+
+__all__ = ["Learner"]
