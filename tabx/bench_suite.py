@@ -20,7 +20,6 @@ compare   ours and SMAX (jaxmarl, the optional `peers` extra) in one process on 
 from __future__ import annotations
 
 import argparse
-import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
@@ -38,6 +37,7 @@ from tabx.bench import (
     run_one,
     write_results,
 )
+from tabx.compile_counter import CompileCounter
 from tabx.controllers import Controller
 from tabx.env import TabxEnv
 from tabx.params import EnvConfig, EnvParams
@@ -49,49 +49,6 @@ SCALE_ENEMIES = ("random", "heuristic:medium")
 TARGET_FIXED_RATIO = 2.0  # ours / SMAX env steps/s at 1024 envs, every matched team size
 TARGET_RECONFIG_RATIO = 20.0  # ours / SMAX effective throughput over 100 scenarios
 TARGET_COMPILE_S = 6.0  # compile of the 10v10 + zones rollout
-
-
-# --- counting compilations ---------------------------------------------------------------------
-
-_COMPILE_EVENTS = {"/jax/core/compile/backend_compile_duration": "compiles",
-                   "/jax/core/compile/jaxpr_trace_duration": "traces"}
-_LISTENING: list[CompileCounter] = []
-_LOCK = threading.Lock()
-_REGISTERED = [False]
-
-
-def _on_duration(event: str, duration: float, **_kwargs) -> None:
-    what = _COMPILE_EVENTS.get(event)
-    if what is None and event != "/jax/core/compile/jaxpr_to_mlir_module_duration":
-        return
-    with _LOCK:
-        for counter in _LISTENING:
-            if what is not None:
-                setattr(counter, what, getattr(counter, what) + 1)
-            counter.seconds += duration
-
-
-class CompileCounter:
-    """Counts XLA compilations (`compiles`), traces and their total seconds (trace, lowering
-    and backend compile) while active: `with CompileCounter() as cc: ...`. Uses JAX's own
-    monitoring events, so it sees every compilation in the process, eager ops included."""
-
-    def __init__(self):
-        self.compiles = 0
-        self.traces = 0
-        self.seconds = 0.0
-
-    def __enter__(self) -> CompileCounter:
-        with _LOCK:
-            if not _REGISTERED[0]:
-                jax.monitoring.register_event_duration_secs_listener(_on_duration)
-                _REGISTERED[0] = True
-            _LISTENING.append(self)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        with _LOCK:
-            _LISTENING.remove(self)
 
 
 # --- scale -------------------------------------------------------------------------------------
@@ -618,6 +575,6 @@ def add_suite_parsers(which: argparse._SubParsersAction) -> None:
     compare.set_defaults(func=bench_compare)
 
 
-__all__ = ["CompileCounter", "ReconfigResult", "TabxSimulator", "compare_rows", "format_compare",
+__all__ = ["ReconfigResult", "TabxSimulator", "compare_rows", "format_compare",
            "plot_compare", "plot_scale", "reconfig_ratio", "run_compare", "run_reconfig",
            "run_scale"]

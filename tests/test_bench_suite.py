@@ -16,7 +16,6 @@ from hypothesis import strategies as st
 from tabx import constants as C
 from tabx.bench import BenchResult, make_rollout
 from tabx.bench_suite import (
-    CompileCounter,
     ReconfigResult,
     compare_rows,
     format_compare,
@@ -26,6 +25,7 @@ from tabx.bench_suite import (
     run_reconfig,
 )
 from tabx.cli import main
+from tabx.compile_counter import CompileCounter
 from tabx.env import TabxEnv
 from tabx.params import EnvConfig, levels_equal
 from tabx.random_levels import composition, random_levels

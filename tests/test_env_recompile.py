@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from tabx import constants as C
+from tabx.compile_counter import CompileCounter
 from tabx.env import TabxEnv
 from tabx.params import EnvConfig, heuristic_params, make_level, physics_params, stack_levels
 from tabx.scenarios import config_for, load_named
@@ -26,16 +27,6 @@ N = CONFIG.num_units
 KEY = jax.random.PRNGKey(0)
 SCENARIOS = ("crossfire", "elbow", "2F1M2Avs2S1K_2L2B2S")
 
-_TRACES: list[str] = []
-_COUNTING = [False]
-
-
-def _on_event(name: str, *args, **kwargs) -> None:
-    if _COUNTING[0] and name == "/jax/core/compile/jaxpr_trace_duration":
-        _TRACES.append(name)
-
-
-jax.monitoring.register_event_duration_secs_listener(_on_event)
 
 
 def random_level(rng: np.random.Generator, i: int):
@@ -104,9 +95,7 @@ def test_one_compilation_for_fifty_levels(random_levels):
     # Warm up on the first level, then count every trace from here on.
     _, state = reset(KEY, random_levels[0])
     step(KEY, state, actions[0], random_levels[0])
-    _TRACES.clear()
-    _COUNTING[0] = True
-    try:
+    with CompileCounter() as cc:
         for params in random_levels:
             obs, state = reset(KEY, params)
             for a in actions:
@@ -114,11 +103,9 @@ def test_one_compilation_for_fifty_levels(random_levels):
             assert obs.shape == (N, CONFIG.obs_size)
             # numpy checks: an eager jnp op would itself trace and compile.
             assert np.isfinite(np.asarray(obs)).all() and np.isfinite(np.asarray(reward)).all()
-    finally:
-        _COUNTING[0] = False
     assert reset._cache_size() == 1
     assert step._cache_size() == 1
-    assert _TRACES == [], f"{len(_TRACES)} retraces over 50 levels"
+    assert cc.traces == 0 and cc.compiles == 0, f"{cc.traces} retraces over 50 levels"
 
 
 def test_one_compilation_for_batches_of_levels(random_levels):

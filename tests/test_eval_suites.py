@@ -21,6 +21,7 @@ import pytest
 from test_learners_helpers import ENV_CONFIG, tiny_config
 
 from tabx.cli import main
+from tabx.compile_counter import CompileCounter
 from tabx.params import HEURISTIC_TIERS, make_level
 from tabx.scenarios import config_for, level_to_scenario, load_named, save_scenario
 from ued.checkpoint import Checkpoints
@@ -34,16 +35,6 @@ EPISODES = 3
 OPPONENTS = ("idle", "heuristic:expert", "random", "heuristic")
 EXPECTED_WINS = (0.0, 1.0, 0.0, 1.0)
 
-_TRACES: list[str] = []
-_COUNTING = [False]
-
-
-def _on_event(name: str, *args, **kwargs) -> None:
-    if _COUNTING[0] and name == "/jax/core/compile/jaxpr_trace_duration":
-        _TRACES.append(name)
-
-
-jax.monitoring.register_event_duration_secs_listener(_on_event)
 
 
 def weak_level(weak: str):
@@ -191,15 +182,11 @@ def test_results_land_on_their_own_entries(evaluator, first_result, files):
 
 def test_evaluate_never_recompiles(evaluator, first_result, learner):
     assert evaluator._run._cache_size() == 1
-    _TRACES.clear()
-    _COUNTING[0] = True
-    try:
+    with CompileCounter() as cc:
         for seed in (1, 2):
             params = learner.init(jax.random.key(seed)).params
             result = evaluator.evaluate(params, jax.random.key(seed))
-    finally:
-        _COUNTING[0] = False
-    assert _TRACES == [] and evaluator._run._cache_size() == 1
+    assert cc.traces == 0 and evaluator._run._cache_size() == 1, cc.traced
     assert [e.win_rate for e in result.entries] == list(EXPECTED_WINS)
 
 

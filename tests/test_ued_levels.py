@@ -16,6 +16,7 @@ from hypothesis import HealthCheck, Phase, example, given, settings
 from hypothesis import strategies as st
 
 from tabx import constants as C
+from tabx.compile_counter import CompileCounter
 from tabx.params import EnvConfig, index_level, stack_levels
 from tabx.scenarios import ScenarioError, load_named
 from ued.errors import ConfigError
@@ -393,16 +394,6 @@ def test_pure_functions_compose_inside_jit():
 
 # --- compilation ---------------------------------------------------------------------------------
 
-_TRACES: list[str] = []
-_COUNTING = [False]
-
-
-def _on_event(name: str, *args, **kwargs) -> None:
-    if _COUNTING[0] and name == "/jax/core/compile/jaxpr_trace_duration":
-        _TRACES.append(name)
-
-
-jax.monitoring.register_event_duration_secs_listener(_on_event)
 
 
 def test_no_recompilation_on_new_keys_and_levels():
@@ -411,16 +402,12 @@ def test_no_recompilation_on_new_keys_and_levels():
     batch = gen.sample(keys[0], N)
     gen.mutate(keys[1], batch)
     sizes = gen._sample_jit._cache_size(), gen._mutate_jit._cache_size()
-    _TRACES.clear()
-    _COUNTING[0] = True
-    try:
+    with CompileCounter() as cc:
         for i in range(2, 8, 2):
             batch = gen.sample(keys[i], N)
             batch = gen.mutate(keys[i + 1], batch)
         jax.block_until_ready(batch)
-    finally:
-        _COUNTING[0] = False
-    assert _TRACES == [], f"{len(_TRACES)} retraces"
+    assert cc.traces == 0, f"{cc.traces} retraces: {cc.traced}"
     assert (gen._sample_jit._cache_size(), gen._mutate_jit._cache_size()) == sizes
 
 

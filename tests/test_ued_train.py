@@ -15,23 +15,13 @@ import pytest
 from test_learners_helpers import tiny_config
 
 from level_buffer import LevelBuffer
+from tabx.compile_counter import CompileCounter
 from ued.config import ConfigError, config_from_dict
 from ued.curricula import ACCEL, PLR, SFL, Branch, DomainRandomization, make_curriculum
 from ued.train import train
 from workers.driver import LEVELS_DIR, UEDRun
 from workers.learner import Learner
 from workers.level_service import snapshot_steps
-
-traces: list[str] = []
-counting = [False]
-
-
-def _on_trace(name: str, *args, **kwargs) -> None:
-    if counting[0] and name == "/jax/core/compile/jaxpr_trace_duration":
-        traces.append(kwargs.get("fun_name", "?"))
-
-
-jax.monitoring.register_event_duration_secs_listener(_on_trace)
 
 
 class Decisions:
@@ -149,16 +139,12 @@ def test_every_method_runs_end_to_end_and_never_recompiles(tmp_path):
     run_all(0)
     learner = UEDRun(ued_config("accel")).learner
     sizes = learner.update._cache_size(), learner._score_jit._cache_size()
-    traces.clear()
-    counting[0] = True
-    try:
+    with CompileCounter() as cc:
         run_all(1)  # new seeds: other levels, other buffers, other branch sequences
-    finally:
-        counting[0] = False
     assert (learner.update._cache_size(), learner._score_jit._cache_size()) == sizes
     assert sizes[0] == 1
     # Only host-side helpers may trace again (none of them is the update or the rollout).
-    assert not [t for t in traces if "update" in t or "score" in t], traces
+    assert not [t for t in cc.traced if "update" in t or "score" in t], cc.traced
 
 
 def test_accel_run_fills_the_buffer_with_mutations(tmp_path):

@@ -1,0 +1,62 @@
+"""Count JAX traces and XLA compilations while a block runs (benchmarks and no-recompile tests).
+
+    with CompileCounter() as cc:
+        run()
+    assert cc.compiles == 0, cc.traced      # the names of the functions that were traced
+
+Uses JAX's own monitoring events, so it sees every compilation in the process, eager
+operations included. The listener is registered once per process; counters nest.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import jax
+
+_TRACE = "/jax/core/compile/jaxpr_trace_duration"
+_COMPILE = "/jax/core/compile/backend_compile_duration"
+_LOWER = "/jax/core/compile/jaxpr_to_mlir_module_duration"
+_LISTENING: list[CompileCounter] = []
+_LOCK = threading.Lock()
+_REGISTERED = [False]
+
+
+def _on_duration(event: str, duration: float, **kwargs: object) -> None:
+    if event not in (_TRACE, _COMPILE, _LOWER):
+        return
+    with _LOCK:
+        for counter in _LISTENING:
+            if event == _TRACE:
+                counter.traces += 1
+                counter.traced.append(str(kwargs.get("fun_name", "?")))
+            elif event == _COMPILE:
+                counter.compiles += 1
+            counter.seconds += duration
+
+
+class CompileCounter:
+    """Counts XLA compilations (`compiles`), traces (`traces`, with the traced functions'
+    names in `traced`) and their total seconds (trace, lowering and backend compile) while
+    active."""
+
+    def __init__(self) -> None:
+        self.compiles = 0
+        self.traces = 0
+        self.traced: list[str] = []
+        self.seconds = 0.0
+
+    def __enter__(self) -> CompileCounter:
+        with _LOCK:
+            if not _REGISTERED[0]:
+                jax.monitoring.register_event_duration_secs_listener(_on_duration)
+                _REGISTERED[0] = True
+            _LISTENING.append(self)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        with _LOCK:
+            _LISTENING.remove(self)
+
+
+__all__ = ["CompileCounter"]
