@@ -18,6 +18,7 @@ REGISTRARS = (
     "level_buffer.cli",  # tabx buffer ...
     "tabx.editor.cli",  # tabx editor
     "ued.cli",  # tabx train, tabx eval
+    "ued.levels_cli",  # tabx levels sample
 )
 # Commands whose first argument is a fixed word next to a free positional of another command
 # (`tabx eval heuristics NAME` beside `tabx eval RUN_DIR`): (command, word) -> registrar module
