@@ -19,6 +19,7 @@ REGISTRARS = (
     "tabx.editor.cli",  # tabx editor
     "ued.cli",  # tabx train, tabx eval
     "ued.levels_cli",  # tabx levels sample
+    "ued.plot",  # tabx plot
 )
 # Commands whose first argument is a fixed word next to a free positional of another command
 # (`tabx eval heuristics NAME` beside `tabx eval RUN_DIR`): (command, word) -> registrar module
