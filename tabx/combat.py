@@ -23,16 +23,28 @@ def attack_targets(rel: jax.Array, trig: jax.Array, radius: jax.Array,
     (damage dealers) or an ally of a (healers). The target is the nearest attackable unit by
     centre distance. Dead units are never attackable, so they are never hit, healed or revived.
     """
+    attackable = attackable_pairs(rel, trig, radius, attack_range, team, heals, alive)
+    # Materialise once: the target choice and has_target would each re-derive it otherwise.
+    attackable = jax.lax.optimization_barrier(attackable)
+    return (attackable, *nearest_targets(rel, attackable))
+
+
+def attackable_pairs(rel: jax.Array, trig: jax.Array, radius: jax.Array,
+                     attack_range: jax.Array, team: jax.Array, heals: jax.Array,
+                     alive: jax.Array) -> jax.Array:
+    """attackable (N, N) of `attack_targets`."""
     in_box = hurtbox_overlap(rel, trig, radius, attack_range)
     same_team = team[:, None] == team[None, :]
     role_ok = jnp.where(heals[:, None], same_team, ~same_team)
     not_self = ~jnp.eye(team.shape[0], dtype=bool)
-    attackable = in_box & role_ok & not_self & alive[:, None] & alive[None, :]
-    # Materialise once: the target choice and has_target would each re-derive it otherwise.
-    attackable = jax.lax.optimization_barrier(attackable)
+    return in_box & role_ok & not_self & alive[:, None] & alive[None, :]
+
+
+def nearest_targets(rel: jax.Array, attackable: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """(target (N,), has_target (N,)): the nearest attackable unit by centre distance."""
     dist2 = jnp.sum(rel * rel, -1)
     target, _, has_target = row_argmin(dist2, attackable)
-    return attackable, target, has_target
+    return target, has_target
 
 
 def resolve_attacks(attacking: jax.Array, has_target: jax.Array, target: jax.Array,

@@ -21,14 +21,16 @@ import jax
 import jax.numpy as jnp
 
 from tabx import constants as C
-from tabx.combat import attack_targets, resolve_attacks
+from tabx.combat import attackable_pairs, nearest_targets, resolve_attacks
 from tabx.geometry import facing, field_of_view, in_ellipses, pairwise_offsets, view_trig
 from tabx.observe import action_mask, cooldown_ready, observe, pick_legal, world_state
 from tabx.params import EnvConfig, EnvParams
 from tabx.physics import integrate, resolve_collisions, wall_contact
 from tabx.reward import dense_reward, team_hp_ratio, winner_mask
+from tabx.rng import random_words, to_unit_float
+from tabx.selection import materialise
 from tabx.state import EnvState
-from tabx.zones import bush_visibility, lava_damage, swamp_speed
+from tabx.zones import apply_bush_hiding, bush_hidden, lava_damage, swamp_speed
 
 _ACTION_TABLE = jnp.asarray(C.ACTION_TABLE, jnp.float32)
 
@@ -221,14 +223,29 @@ class TabxEnv:
                           inside: jax.Array) -> EnvState:
         """Visibility, hurtbox reach and nearest targets for the state's positions."""
         u, z = params.units, params.zones
+        n = self.config.num_units
         active = u.active.astype(bool)
-        # Per-unit positions once, not recomputed inside each (N, N) fusion.
-        rel = pairwise_offsets(jax.lax.optimization_barrier(state.position))
-        trig = view_trig(state.facing, state.half_sight)
+        # Per-unit inputs computed once (positions after collisions, health after damage), not
+        # inside each element of the (N, N) tests; the view trigonometry with them.
+        unit = materialise(jnp.concatenate(
+            [state.position, state.alive[:, None].astype(jnp.float32),
+             view_trig(state.facing, state.half_sight)], -1))
+        rel = pairwise_offsets(unit[:, :2])
+        alive = unit[:, 2] > 0.5
+        trig = unit[:, 3:]
         fov = field_of_view(rel, trig, u.radius) & active[None, :]
-        visible = bush_visibility(fov, inside, z.zone_type, u.team, state.alive, interacted)
-        attackable, target, has_target = attack_targets(
-            rel, trig, u.radius, u.attack_range, u.team, u.heals.astype(bool), state.alive)
+        attackable = attackable_pairs(rel, trig, u.radius, u.attack_range, u.team,
+                                      u.heals.astype(bool), alive)
+        hidden = bush_hidden(inside, z.zone_type, u.team, state.alive, interacted)  # (2, N)
+        # The pairwise tests and the bush rule computed once, packed as small integers in one
+        # (N + 2, N) matrix: XLA would otherwise re-derive them inside each of visible,
+        # attackable, target and has_target (and the auto-reset select of each).
+        code = materialise(jnp.concatenate(
+            [fov.astype(jnp.float32) + 2.0 * attackable, hidden.astype(jnp.float32)], 0))
+        attackable = code[:n] >= 1.5
+        fov = (code[:n] == 1.0) | (code[:n] == 3.0)
+        visible = apply_bush_hiding(fov, u.team, code[n:] > 0.5)
+        target, has_target = nearest_targets(rel, attackable)
         return state.replace(visible=visible, attackable=attackable, target=target,
                              has_target=has_target)
 
@@ -247,5 +264,7 @@ def materialise_actions(actions: jax.Array) -> jax.Array:
 
 
 def random_legal_actions(key: jax.Array, mask: jax.Array) -> jax.Array:
-    """Uniform random legal action per unit slot from a (..., 8) bool mask."""
-    return pick_legal(jax.random.uniform(key, mask.shape[:-1]), mask)
+    """Uniform random legal action per unit slot from a (..., 8) bool mask. One threefry word
+    per call, spread over the unit slots by a hash (tabx.rng): threefry runs as a rolled loop
+    of small kernels on CPU, a large part of a random-action step."""
+    return pick_legal(to_unit_float(random_words(key, mask.shape[:-1])), mask)

@@ -73,3 +73,46 @@ def in_ellipses(position: jax.Array, centre: jax.Array, semi_axes: jax.Array,
     axes = jnp.maximum(semi_axes, 1e-6)  # a zero axis would divide by zero: such a zone is empty
     q = jnp.square((position[:, None, :] - centre[None, :, :]) / axes[None, :, :]).sum(-1)
     return (q <= 1.0) & (zone_type > 0)[None, :] & jnp.all(semi_axes > 0, -1)[None, :]
+
+
+# --- vectorisable trigonometry -------------------------------------------------------------
+# XLA:CPU evaluates atan2, sin and cos as scalar code: 45 ns per atan2 and 8-10 ns per sin or
+# cos here, against well under 1 ns for a fused vectorised polynomial. These are the Cephes
+# single-precision polynomials (about 1e-7 absolute error) written as plain jnp arithmetic.
+
+_PI_4_PARTS = (0.78515625, 2.4187564849853515625e-4, 3.77489497744594108e-8)  # Cody-Waite
+
+
+def sincos(x: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """(sin x, cos x) for float32 x of moderate size (|x| < 1e4), as polynomials."""
+    quadrant = jnp.rint(x * (2.0 / jnp.pi))
+    r = x - quadrant * (2.0 * _PI_4_PARTS[0])
+    r = r - quadrant * (2.0 * _PI_4_PARTS[1])
+    r = r - quadrant * (2.0 * _PI_4_PARTS[2])  # r in [-pi/4, pi/4]
+    r2 = r * r
+    s = r + r * r2 * (-1.6666654611e-1 + r2 * (8.3321608736e-3 + r2 * -1.9515295891e-4))
+    c = 1.0 - 0.5 * r2 + r2 * r2 * (4.166664568298827e-2 + r2 * (-1.388731625493765e-3
+                                                               + r2 * 2.443315711809948e-5))
+    q = quadrant.astype(jnp.int32) & 3
+    swap = (q & 1) == 1
+    sin = jnp.where(swap, c, s)
+    cos = jnp.where(swap, s, c)
+    sin = jnp.where(q >= 2, -sin, sin)
+    cos = jnp.where((q == 1) | (q == 2), -cos, cos)
+    return sin, cos
+
+
+def atan2(y: jax.Array, x: jax.Array) -> jax.Array:
+    """jnp.arctan2(y, x) in [-pi, pi] as a polynomial (signed zeros aside: atan2(0, -0) = 0)."""
+    ax, ay = jnp.abs(x), jnp.abs(y)
+    big, small = jnp.maximum(ax, ay), jnp.minimum(ax, ay)
+    z = small / jnp.where(big > 0, big, 1.0)  # in [0, 1]
+    reduce = z > 0.4142135623730950  # tan(pi/8): use atan(z) = pi/4 + atan((z-1)/(z+1))
+    t = jnp.where(reduce, (z - 1.0) / (z + 1.0), z)
+    t2 = t * t
+    a = t + t * t2 * (((8.05374449538e-2 * t2 - 1.38776856032e-1) * t2 + 1.99777106478e-1)
+                      * t2 - 3.33329491539e-1)
+    a = jnp.where(reduce, a + 0.25 * jnp.pi, a)  # atan(small / big) in [0, pi/4]
+    a = jnp.where(ay > ax, 0.5 * jnp.pi - a, a)
+    a = jnp.where(x < 0, jnp.pi - a, a)
+    return jnp.where(y < 0, -a, a)

@@ -46,3 +46,14 @@ def pick_row(matrix: jax.Array, one_hot: jax.Array) -> jax.Array:
     if matrix.ndim == one_hot.ndim:
         return jnp.sum(jnp.where(one_hot, matrix, jnp.zeros((), matrix.dtype)), axis=-1)
     return jnp.sum(jnp.where(one_hot[..., None], matrix, jnp.zeros((), matrix.dtype)), axis=-2)
+
+
+def materialise(x: jax.Array) -> jax.Array:
+    """x (..., k) float, computed once. XLA on CPU drops optimization barriers before fusing
+    and duplicates cheap producers into every consumer fusion (each (N, N) output of a step
+    re-deriving the whole pairwise geometry, say). A matrix product is never fused with its
+    operands, so multiplying by the identity makes XLA compute x once; under vmap the identity
+    is unbatched, so this is one plain matrix product over the whole batch. Exact for finite
+    floats (HIGHEST precision; each output is one product with 1 plus zeros)."""
+    identity = jnp.eye(x.shape[-1], dtype=x.dtype)
+    return jnp.matmul(x, identity, precision=jax.lax.Precision.HIGHEST)

@@ -37,6 +37,12 @@ def bush_visibility(fov: jax.Array, inside: jax.Array, zone_type: jax.Array, tea
     (the one-step reveal). Team sharing can only undo bush hiding, never widen the field of
     view: the result is always within `fov`.
     """
+    return apply_bush_hiding(fov, team, bush_hidden(inside, zone_type, team, alive, interacted))
+
+
+def bush_hidden(inside: jax.Array, zone_type: jax.Array, team: jax.Array, alive: jax.Array,
+                interacted: jax.Array) -> jax.Array:
+    """hidden[T, t] (2, N): t is hidden by a bush from team T (see `bush_visibility`)."""
     # Team reductions are written as broadcast-and-reduce, not matmuls: vmapped tiny matmuls
     # are slow on CPU, and these fuse with their neighbours.
     members = team[None, :] == jnp.arange(C.NUM_TEAMS)[:, None]  # (2, N)
@@ -47,6 +53,13 @@ def bush_visibility(fov: jax.Array, inside: jax.Array, zone_type: jax.Array, tea
     hidden = jnp.any(in_bush[None, :, :] & ~team_in_bush[:, None, :], axis=-1)  # (2, N)
     # ... and no member of T attacked t or was attacked by it this step.
     revealed = jnp.any(members[:, :, None] & interacted[None, :, :], axis=1)  # (2, N)
-    hidden = hidden & ~revealed
+    return hidden & ~revealed
+
+
+def apply_bush_hiding(fov: jax.Array, team: jax.Array, hidden: jax.Array) -> jax.Array:
+    """visible[v, t] = fov[v, t] unless t is an opponent hidden from v's team (`bush_hidden`).
+    The row of v's team is picked by a select (a gather is slow under vmap)."""
     same_team = team[:, None] == team[None, :]
-    return fov & (same_team | ~hidden[team])
+    hidden_from = jnp.where((team == C.ALLY)[:, None], hidden[C.ALLY][None, :],
+                            hidden[C.ENEMY][None, :])
+    return fov & (same_team | ~hidden_from)
