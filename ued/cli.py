@@ -182,8 +182,9 @@ def _write_gif(path: str, env_config, level, sides, result) -> None:
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     train = subparsers.add_parser(
-        "train", help="train MAPPO or IPPO from a YAML config",
-        description="Train MAPPO or IPPO from a YAML config (configs/marl/). Overrides: "
+        "train", help="train MAPPO or IPPO from a YAML config (UED if ued.method is set)",
+        description="Train MAPPO or IPPO from a YAML config (configs/marl/; with ued.method "
+                    "set, a UED curriculum: configs/ued/, docs/ued.md). Overrides: "
                     "KEY=VALUE with KEY a section.field (learner.lr) or an unambiguous field "
                     "name (lr). The run folder (config.yaml, events/, checkpoints/) is printed "
                     "at the end.")
