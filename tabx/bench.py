@@ -163,12 +163,9 @@ def bench_env(args: argparse.Namespace) -> int:
     from tabx.cli import UserError
 
     try:
-        controllers = (Controller.parse(args.ally), Controller.parse(args.enemy))
+        controllers = (Controller.parse_scripted(args.ally), Controller.parse_scripted(args.enemy))
     except ValueError as err:
-        raise UserError(str(err)) from None
-    if any(c.kind == "external" for c in controllers):
-        raise UserError("--ally/--enemy: the benchmark has no learner; use random, idle or "
-                        "heuristic[:TIER]")
+        raise UserError(f"--ally/--enemy: {err}") from None
     print(f"# tabx bench env on {machine_summary()}; observations "
           f"{'computed every step' if args.obs else 'not computed (--no-obs)'}; allies "
           f"{controllers[0]}, enemies {controllers[1]}", flush=True)

@@ -443,12 +443,9 @@ def bench_scale(args: argparse.Namespace) -> int:
 
     for text in args.enemy:
         try:
-            c = Controller.parse(text)
+            Controller.parse_scripted(text)
         except ValueError as err:
             raise UserError(f"--enemy: {err}") from None
-        if c.kind == "external":
-            raise UserError("--enemy: the benchmark has no learner; use random, idle or "
-                            "heuristic[:TIER]")
     print(f"# tabx bench scale on {machine_summary()}; {args.steps}-step scan, median of "
           f"{args.repeats}; observations {'computed every step' if args.obs else 'not computed'}"
           f"; {args.zones} zones; load average {load_average()}", flush=True)

@@ -59,6 +59,16 @@ class Controller:
         kind, _, tier = text.partition(":")
         return cls(kind, tier or None)
 
+    @classmethod
+    def parse_scripted(cls, text: str, role: str = "a team controller") -> Controller:
+        """`parse`, refusing 'external' (a learner's actions): for the places where no learner
+        plays (rollouts, benchmarks, opponents). `role` names the slot in the message."""
+        controller = cls.parse(text)
+        if controller.kind == "external":
+            raise ValueError(f"'external' is not {role}: it stands for a learner's actions and "
+                             "no learner plays here; use heuristic[:TIER], random or idle")
+        return controller
+
     def __str__(self) -> str:
         return self.kind if self.tier is None else f"{self.kind}:{self.tier}"
 

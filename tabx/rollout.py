@@ -105,13 +105,9 @@ def cmd_rollout(args: argparse.Namespace) -> int:
     controllers = []
     for flag, text in (("--ally", args.ally), ("--enemy", args.enemy)):
         try:
-            controller = Controller.parse(text)
+            controllers.append(Controller.parse_scripted(text))
         except ValueError as err:
             raise UserError(f"{flag}: {err}") from None
-        if controller.kind == "external":
-            raise UserError(f"{flag}: a rollout has no learner; use heuristic[:TIER], random "
-                            f"or idle")
-        controllers.append(controller)
     controllers = tuple(controllers)
     if args.gif is not None and not args.gif.endswith(".gif"):
         raise UserError(f"--gif: expected a file name ending in .gif, got {args.gif!r}")

@@ -300,6 +300,9 @@ def test_controller_parsing_and_tiers():
                        ("robot", "unknown controller"), ("random:expert", "only goes with")):
         with pytest.raises(ValueError, match=match):
             Controller.parse(bad)
+    assert Controller.parse_scripted("heuristic:novice") == Controller("heuristic", "novice")
+    with pytest.raises(ValueError, match="'external' is not an opponent: .* no learner plays"):
+        Controller.parse_scripted("external", "an opponent")
     params = level([unit("farmer", 0, 0)], [unit("farmer", 12, 0)],
                    heuristic=heuristic_params("medium", "medium"))
     tiered = with_tiers(params, (Controller("heuristic"), Controller("heuristic", "expert")))

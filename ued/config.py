@@ -57,12 +57,10 @@ class EnvSection:
         from tabx.controllers import Controller
 
         try:
-            controller = Controller.parse(self.opponent)
+            Controller.parse_scripted(self.opponent, "an opponent (policy against policy is an "
+                                      "evaluation: tabx eval --ally RUN_A --enemy RUN_B)")
         except ValueError as err:
             raise ConfigError(f"{prefix}.opponent: {err}") from None
-        _check(controller.kind != "external", f"{prefix}.opponent",
-               "the opponent must be heuristic[:TIER], random or idle (policy-vs-policy is an "
-               "evaluation: tabx eval --ally RUN_A --enemy RUN_B)")
         _check(self.max_steps >= 1, f"{prefix}.max_steps", f"must be >= 1, got {self.max_steps}")
 
 

@@ -87,13 +87,9 @@ def parse_side(text: str) -> Side:
     if path.is_dir():
         return load_policy(path)
     try:
-        controller = Controller.parse(text)
+        return Controller.parse_scripted(text, "a side (give a run folder or a controller)")
     except ValueError as err:
         raise ConfigError(f"{text!r} is neither a run folder nor a controller ({err})") from None
-    if controller.kind == "external":
-        raise ConfigError("'external' is not a side: give a run folder or heuristic[:TIER], "
-                          "random or idle")
-    return controller
 
 
 @dataclass

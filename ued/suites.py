@@ -167,13 +167,9 @@ def normalise_opponent(text: Any, key: str) -> str:
 
     text = _string(text, key)
     try:
-        controller = Controller.parse(text)
+        return str(Controller.parse_scripted(text, "an opponent"))
     except ValueError as err:
         raise ConfigError(f"{key}: {err}") from None
-    if controller.kind == "external":
-        raise ConfigError(f"{key}: 'external' is not an opponent; expected heuristic[:TIER], "
-                          f"random or idle")
-    return str(controller)
 
 
 def _check_scenario(name: str, key: str) -> None:
