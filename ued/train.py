@@ -130,6 +130,34 @@ class Progress:
         self.stream.flush()
 
 
+class ThroughputClock:
+    """Wall-clock bookkeeping of a training loop: the first update's seconds (compilation
+    included), then env steps/s between reads. Read it only after the device has finished the
+    updates being timed (e.g. after `jax.device_get` of their metrics)."""
+
+    def __init__(self, start_update: int, steps_per_update: int):
+        self.steps_per_update = steps_per_update
+        self.first_update_s: float | None = None
+        self._t, self._update = time.perf_counter(), start_update
+
+    @property
+    def first_pending(self) -> bool:
+        return self.first_update_s is None
+
+    def read(self, done: int) -> tuple[dict[str, float], float]:
+        """(metrics to log, steps/s) at update `done`: {"time/first_update_s": s} and NaN on
+        the first read, then {} and the rate since the previous read."""
+        now = time.perf_counter()
+        if self.first_update_s is None:
+            self.first_update_s = now - self._t
+            out, rate = {"time/first_update_s": self.first_update_s}, math.nan
+        else:
+            out = {}
+            rate = (done - self._update) * self.steps_per_update / max(now - self._t, 1e-9)
+        self._t, self._update = now, done
+        return out, rate
+
+
 def format_duration(seconds: float) -> str:
     if not math.isfinite(seconds):
         return "?"
@@ -194,28 +222,17 @@ def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = Non
 
     writer = SummaryWriter(run_dir / EVENTS_DIR)
     try:
-        t_start = time.perf_counter()
-        t_log, u_log = t_start, start
-        first_update_s = None
+        clock = ThroughputClock(start, ppo.steps_per_update)
         for update in range(start, stop):
             key, k_update = jax.random.split(key)
             train_state, metrics, _ = learner.update(train_state, levels, k_update)
             done = update + 1
             last = done == stop
-            if first_update_s is None:
-                jax.block_until_ready(train_state)
-                first_update_s = time.perf_counter() - t_start
-                t_log, u_log = time.perf_counter(), done
-                metrics = jax.device_get(metrics)
-                metrics["time/first_update_s"] = first_update_s
-                _log(writer, bar, callback, done, train_state, metrics, ppo.steps_per_update,
-                     math.nan, num_updates, last)
-            elif done % config.run.log_every == 0 or last:
-                metrics = jax.device_get(metrics)  # waits for the update
-                now = time.perf_counter()
-                rate = (done - u_log) * ppo.steps_per_update / max(now - t_log, 1e-9)
-                t_log, u_log = now, done
-                _log(writer, bar, callback, done, train_state, metrics, ppo.steps_per_update,
+            if clock.first_pending or done % config.run.log_every == 0 or last:
+                metrics = dict(jax.device_get(metrics))  # waits for the update
+                timing, rate = clock.read(done)
+                metrics.update(timing)
+                log_update(writer, bar, callback, done, train_state, metrics, ppo.steps_per_update,
                      rate, num_updates, last)
             if done % config.run.checkpoint_every == 0 or last:
                 checkpoints.save(done, train_state, key)
@@ -225,9 +242,10 @@ def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = Non
     return run_dir
 
 
-def _log(writer: SummaryWriter, bar: Progress | None, callback, done: int,
+def log_update(writer: SummaryWriter, bar: Progress | None, callback, done: int,
          train_state: TrainState, metrics: dict[str, Any], steps_per_update: int,
-         steps_per_s: float, num_updates: int, last: bool) -> None:
+         steps_per_s: float, num_updates: int, last: bool, extra: str = "") -> None:
+    """One logged update: TensorBoard scalars, the progress line, the callback."""
     values = {k: float(v) for k, v in metrics.items()}
     if math.isfinite(steps_per_s):
         values["time/steps_per_s"] = steps_per_s
@@ -237,10 +255,10 @@ def _log(writer: SummaryWriter, bar: Progress | None, callback, done: int,
         rate = steps_per_s if math.isfinite(steps_per_s) and steps_per_s > 0 else math.nan
         eta = (num_updates - done) * steps_per_update / rate
         bar.show(done, steps, rate, eta, values.get("episode/win_rate", math.nan), final=last,
-                 first_update_s=values.get("time/first_update_s"))
+                 first_update_s=values.get("time/first_update_s"), extra=extra)
     if callback is not None:
         callback(done, train_state, values)
 
 
-__all__ = ["Progress", "learner_for", "new_run_dir", "read_run_config", "scenario_levels",
-           "train", "training_levels"]
+__all__ = ["Progress", "ThroughputClock", "learner_for", "log_update", "new_run_dir",
+           "read_run_config", "scenario_levels", "train", "training_levels"]

@@ -25,9 +25,7 @@ uninterrupted run's.
 
 from __future__ import annotations
 
-import math
 import sys
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
@@ -207,7 +205,7 @@ def train_ued(config: TrainConfig, run_dir: Path, *, resume: bool = False,
     """Run (or continue) the UED run of `config` in `run_dir` (which holds its config.yaml).
     `max_updates` stops after that many steps in this call; `callback(step, train_state,
     metrics)` runs after every logged step with host metrics."""
-    from ued.train import CHECKPOINT_DIR, EVENTS_DIR, Progress
+    from ued.train import CHECKPOINT_DIR, EVENTS_DIR, Progress, ThroughputClock, log_update
 
     stream = sys.stderr if stream is None else stream
     run = UEDRun(config)
@@ -240,39 +238,24 @@ def train_ued(config: TrainConfig, run_dir: Path, *, resume: bool = False,
     writer = SummaryWriter(run_dir / EVENTS_DIR)
     counts = {b: 0 for b in Branch}
     try:
-        t_start = time.perf_counter()
-        t_log, u_log = t_start, start
-        first_s = None
+        clock = ThroughputClock(start, ppo.steps_per_update)
         for step in range(start, stop):
             key, k_step = jax.random.split(key)
             branch, metrics, levels = run.step(learner, step, k_step)
             counts[branch] += 1
             done = step + 1
             last = done == stop
-            if first_s is None or done % config.run.log_every == 0 or last:
-                metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
-                now = time.perf_counter()
-                if first_s is None:
-                    first_s = now - t_start
-                    metrics["time/first_update_s"] = first_s
-                    rate = math.nan
-                else:
-                    rate = (done - u_log) * ppo.steps_per_update / max(now - t_log, 1e-9)
-                    metrics["time/steps_per_s"] = rate
-                t_log, u_log = now, done
+            if clock.first_pending or done % config.run.log_every == 0 or last:
+                metrics = dict(jax.device_get(metrics))  # waits for the step
+                timing, rate = clock.read(done)
+                metrics.update(timing)
                 metrics.update(run.service.stats())
                 metrics.update(level_summary(levels))
                 if run.sfl_scoring_steps:
                     metrics["sfl/scoring_env_steps"] = float(run.sfl_scoring_steps)
-                writer.scalars(metrics, step=done * ppo.steps_per_update)
-                if bar is not None:
-                    eta = (total - done) * ppo.steps_per_update / rate if rate > 0 else math.nan
-                    bar.show(done, done * ppo.steps_per_update, rate, eta,
-                             metrics.get("episode/win_rate", math.nan), final=last,
-                             first_update_s=metrics.get("time/first_update_s"),
-                             extra=_branch_text(counts, run.service))
-                if callback is not None:
-                    callback(done, learner.train_state, metrics)
+                log_update(writer, bar, callback, done, learner.train_state, metrics,
+                     ppo.steps_per_update, rate, total, last,
+                     extra=_branch_text(counts, run.service))
             if run.evaluators and (done % config.ued.eval_every == 0 or last):
                 _evaluate(run, learner, writer, done, config, stream if progress else None)
             if done % config.run.checkpoint_every == 0 or last:
