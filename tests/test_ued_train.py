@@ -225,3 +225,25 @@ def test_shipped_ued_configs_load_and_their_suites_fit():
     # The quickstart builds all its workers (the evaluator checks its suite fits the policy).
     run = UEDRun(load_config(folder / "quickstart.yaml"))
     assert len(run.evaluators) == 1 and run.service.buffer is not None
+
+
+def test_evaluator_logs_during_training_and_snapshots_are_buffer_files(tmp_path, capsys):
+    from test_learners_helpers import scenario_file
+
+    from tabx.cli import main
+    from ued.tensorboard import read_scalars
+
+    suite = tmp_path / "duel.yaml"
+    suite.write_text(f"name: duel\nepisodes: 2\nscenarios: ['{scenario_file()}']\n"
+                     "opponents: [random, idle]\n")
+    config = ued_config("robust_plr", **{"ued.eval_suites": f"['{suite}']",
+                                         "ued.eval_every": 2})
+    run_dir = train(config, run_dir=tmp_path / "run", stream=io.StringIO(), max_updates=4)
+    scalars = read_scalars(run_dir / "events")
+    # Evaluated after steps 2 and 4 (x axis: env steps, 64 per step).
+    assert [step for step, _ in scalars["eval/duel/mean_win_rate"]] == [128, 256]
+    assert any(tag.startswith("eval/duel/") and tag.endswith("@idle/win_rate")
+               for tag in scalars)
+    assert {"buffer/size", "levels/unit_max_health", "ued/branch"} <= set(scalars)
+    assert main(["buffer", "inspect", str(run_dir / LEVELS_DIR / "buffer-4.msgpack")]) == 0
+    assert "levels" in capsys.readouterr().out
