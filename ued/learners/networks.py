@@ -87,11 +87,20 @@ def dense(p: Params, x: jax.Array) -> jax.Array:
     return x @ p["w"] + p["b"]
 
 
+def _row_mean(x: jax.Array) -> jax.Array:
+    """Mean over the last axis as a matrix-vector product. XLA:CPU splits a plain 128-wide
+    row reduction into an unfused reduce-window and a reduce (two more kernels per LayerNorm
+    statistic, forward and backward, every time step); the product is one kernel, and made
+    whole PPO updates 2-4% faster (MAPPO and IPPO on crossfire, `tabx bench train`)."""
+    n = x.shape[-1]
+    return x @ jnp.full((n, 1), 1.0 / n, x.dtype)
+
+
 def layer_norm(p: Params, x: jax.Array) -> jax.Array:
     """LayerNorm over the last axis (epsilon 1e-6, learned scale and bias)."""
-    mean = jnp.mean(x, axis=-1, keepdims=True)
+    mean = _row_mean(x)
     centred = x - mean
-    var = jnp.mean(centred * centred, axis=-1, keepdims=True)
+    var = _row_mean(centred * centred)
     return centred * jax.lax.rsqrt(var + LN_EPS) * p["scale"] + p["bias"]
 
 
