@@ -17,8 +17,6 @@ position, no masking) plus its team, then every zone slot's 6 features in absolu
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -79,45 +77,6 @@ def zone_features(params: EnvParams, origin: jax.Array) -> jax.Array:
     return feats * used[:, None]
 
 
-@functools.cache
-def _observation_layout(n: int, z: int) -> tuple[np.ndarray, np.ndarray]:
-    """Where every element of the (N, obs_size) observation comes from, as constant indices.
-
-    `observe` lays the distinct values of one env out in a flat source vector, `[own (N, 14) |
-    per-unit (N, 16) | relative positions (N, N, 2) | is ally (N, N) | attackable (N, N) |
-    zones (N, Z, 6)]`, and its visibility in a flat mask `[visible (N, N) | True]`. Returns
-    (value index, mask index), both (N, obs_size) int32: element [i, p] of the observation is
-    `source[value[i, p]]` where `mask[mask_index[i, p]]`, else 0.
-    """
-    own, per_unit = 0, 14 * n
-    rel = per_unit + 16 * n
-    ally = rel + 2 * n * n
-    attackable = ally + n * n
-    zones = attackable + n * n
-    i = np.arange(n)[:, None]
-    j = cyclic_order(n)  # (N, N-1) the other units in each viewer's order
-    block = np.broadcast_to(per_unit + 16 * j[..., None] + np.arange(16), (n, n - 1, 16)).copy()
-    pair = n * i + j  # (N, N-1) index of (viewer, other) in an (N, N) matrix
-    block[..., 2] = rel + 2 * pair
-    block[..., 3] = rel + 2 * pair + 1
-    block[..., 13] = ally + pair
-    block[..., 14] = attackable + pair
-    value = np.concatenate([
-        own + 14 * i + np.arange(14),
-        block.reshape(n, -1),
-        zones + 6 * z * i + np.arange(6 * z),
-    ], axis=1)
-    always = n * n  # the mask's last entry, True
-    mask = np.concatenate([
-        np.full((n, 14), always),
-        np.broadcast_to(pair[..., None], (n, n - 1, 16)).reshape(n, -1),
-        np.full((n, 6 * z), always),
-    ], axis=1)
-    value, mask = value.astype(np.int32), mask.astype(np.int32)
-    value.flags.writeable = mask.flags.writeable = False  # cached: shared by every caller
-    return value, mask
-
-
 def cyclic_order(n: int) -> np.ndarray:
     """(N, N-1) indices of the other units in each viewer's cyclic order i+1, ..., i-1."""
     return (np.arange(n)[:, None] + 1 + np.arange(n - 1)[None, :]) % n
@@ -131,37 +90,38 @@ def cyclic_others(n: int) -> jax.Array:
 def observe(config: EnvConfig, state: EnvState, params: EnvParams) -> jax.Array:
     """(N, obs_size) observation of every unit slot (padded slots get zeros).
 
-    Written as one gather: every distinct value (own features, per-unit features, pairwise
-    relative positions, is-ally and attackable flags, zone features) is computed once into a
-    flat source vector, and the whole observation, in viewer-relative cyclic order, is read
-    from it at constant indices (`_observation_layout`), masked by visibility. XLA:CPU emits
-    that as one loop that writes the observation once, in place of per-viewer gathers with
-    transposes, basis-vector sums and a final concatenate (docs/benchmarks.md, "Observation
-    speed-up (session 3)"). Same values as the straightforward construction, bit for bit.
+    Every other-unit block is first computed for all (viewer, other) pairs in natural order,
+    `pair` (N, N, 16), masked by visibility. Viewer i's row is then `[own i | pair[i, i+1:] |
+    pair[i, :i] | zones i]`: contiguous pieces, written with one concatenate over the flat
+    per-env observation. XLA:CPU copies these pieces in contiguous runs; a single
+    constant-index gather (the previous formulation) read the source with a stride of one
+    env's values and transposed its result, and the whole 10v10 + 6 zone rollout step was 18%
+    slower with it (docs/benchmarks.md, "Observation by slices (session 4)"). Same values,
+    bit for bit (tests/test_observe_fast.py checks against a per-viewer reference).
     """
     n = config.num_units
     u = params.units
     active = u.active.astype(bool)
     own = unit_features(state, params)  # (N, 14)
     half = 0.5 * params.physics.arena_size
-    zeros = jnp.zeros((n, 2), jnp.float32)
-    # Own-style features in the other-unit layout (pairwise slots 2, 3, 13, 14 unused).
-    per_unit = jnp.concatenate([own[:, :2], zeros, own[:, 4:13], zeros, own[:, 13:]], -1)
     rel = (state.position[None, :, :] - state.position[:, None, :]) / half  # (N, N, 2)
     is_ally = (u.team[None, :] == u.team[:, None]).astype(jnp.float32)
     attackable = state.attackable.astype(jnp.float32)
     # Padded viewers see nothing (their whole observation is zeros).
     visible = state.visible & active[None, :] & active[:, None]
-    zones = zone_features(params, state.position) * u.active[:, None, None]  # (N, Z, 6)
-    source = jnp.concatenate([own.reshape(-1), per_unit.reshape(-1), rel.reshape(-1),
-                              is_ally.reshape(-1), attackable.reshape(-1), zones.reshape(-1)])
-    shown = jnp.concatenate([visible.reshape(-1), jnp.ones(1, bool)])
-    value, mask = _observation_layout(n, config.max_zones)
-    # Flat indices, reshaped at the end: with (N, obs_size) indices XLA laid the vmapped result
-    # out env-minor inside a scan (strided reads of the source), 1.2x slower at 10v10.
-    obs = jnp.where(shown.at[mask.reshape(-1)].get(mode="promise_in_bounds"),
-                    source.at[value.reshape(-1)].get(mode="promise_in_bounds"), 0.0)
-    return obs.reshape(value.shape)
+
+    def per_other(features: jax.Array) -> jax.Array:  # (N, k) of the other unit -> (N, N, k)
+        return jnp.broadcast_to(features[None], (n, *features.shape))
+
+    pair = jnp.concatenate([per_other(own[:, :2]), rel, per_other(own[:, 4:13]),
+                            is_ally[..., None], attackable[..., None],
+                            per_other(own[:, 13:])], axis=-1)  # (viewer, other, 16)
+    pair = jnp.where(visible[..., None], pair, 0.0)
+    zones = (zone_features(params, state.position) * u.active[:, None, None]).reshape(n, -1)
+    pieces = []
+    for i in range(n):  # static: the layout, not the data, depends on i
+        pieces += [own[i], pair[i, i + 1:].reshape(-1), pair[i, :i].reshape(-1), zones[i]]
+    return jnp.concatenate(pieces).reshape(n, config.obs_size)
 
 
 def world_state(config: EnvConfig, state: EnvState, params: EnvParams) -> jax.Array:

@@ -1,4 +1,4 @@
-"""`tabx.observe.observe` (one constant-index gather, see its docstring) against a
+"""`tabx.observe.observe` (pairwise blocks cut into contiguous pieces, see its docstring) against a
 straightforward per-viewer, per-other-unit reference written out here from the documented
 layout (docs/environment.md, "Observations"), over random levels and arbitrary states:
 random positions, health, cooldowns, dead and padded units, and visibility and attackable
