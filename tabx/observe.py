@@ -121,7 +121,7 @@ def observe(config: EnvConfig, state: EnvState, params: EnvParams) -> jax.Array:
     pieces = []
     for i in range(n):  # static: the layout, not the data, depends on i
         pieces += [own[i], pair[i, i + 1:].reshape(-1), pair[i, :i].reshape(-1), zones[i]]
-    return jnp.concatenate(pieces).reshape(n, config.obs_size)
+    return jnp.concatenate(pieces).reshape(n, -1)
 
 
 def world_state(config: EnvConfig, state: EnvState, params: EnvParams) -> jax.Array:
