@@ -107,9 +107,10 @@ def summarise(trace_dir: str | Path, by_kernel: bool = False
     count: collections.Counter[str] = collections.Counter()
     first, last = float("inf"), 0.0
     for thread, name, start, duration in kernel_events(files[-1].read_bytes()):
-        # Kernels run on XLA's worker threads (and on the client thread for small programs);
-        # the Python thread's spans and the executor's own spans wrap them.
-        if thread == "python" or name.startswith(_NOT_KERNELS):
+        # Kernels run on XLA's threads ("tf_XLAEigen/..." workers, and "tf_XLAPjRtCpuClient/..."
+        # for small programs); the host thread's spans (named after the process) and the
+        # executor's own spans wrap them.
+        if not thread.startswith("tf_XLA") or name.startswith(_NOT_KERNELS):
             continue
         kind = name if by_kernel else re.sub(r"(\.\d+)+$", "", name)
         total[kind] += duration
