@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from tabx import constants as C
 from tabx.params import EnvConfig, EnvParams
@@ -75,16 +74,6 @@ def zone_features(params: EnvParams, origin: jax.Array) -> jax.Array:
         jnp.broadcast_to(effect[:, None], (*shape, 1)),
     ], axis=-1)
     return feats * used[:, None]
-
-
-def cyclic_order(n: int) -> np.ndarray:
-    """(N, N-1) indices of the other units in each viewer's cyclic order i+1, ..., i-1."""
-    return (np.arange(n)[:, None] + 1 + np.arange(n - 1)[None, :]) % n
-
-
-def cyclic_others(n: int) -> jax.Array:
-    """`cyclic_order` as a jax array."""
-    return jnp.asarray(cyclic_order(n))
 
 
 def observe(config: EnvConfig, state: EnvState, params: EnvParams) -> jax.Array:

@@ -111,20 +111,11 @@ class LevelSpace:
 
     def validate(self, prefix: str = "levels") -> LevelSpace:
         """Check every field; raises ConfigError naming `prefix.field`."""
-        key = f"{prefix}.free"
-        _check(isinstance(self.free, tuple | list) and len(self.free) > 0, key,
-               f"needs at least one free parameter out of {', '.join(FREE_NAMES)}")
-        for name in self.free:
-            _check(isinstance(name, str) and name in FREE_NAMES, key,
-                   f"unknown free parameter {name!r}; expected some of {', '.join(FREE_NAMES)}")
+        _check_names(self.free, FREE_NAMES, f"{prefix}.free", "free parameter")
         for name, bounds in RANGE_BOUNDS.items():
             _check_range(getattr(self, name), bounds, f"{prefix}.{name}")
         key = f"{prefix}.zone_types"
-        _check(isinstance(self.zone_types, tuple | list) and len(self.zone_types) > 0, key,
-               f"needs at least one of {', '.join(ZONE_TYPES)}")
-        for name in self.zone_types:
-            _check(isinstance(name, str) and name in ZONE_TYPES, key,
-                   f"unknown zone type {name!r}; expected some of {', '.join(ZONE_TYPES)}")
+        _check_names(self.zone_types, ZONE_TYPES, key, "zone type")
         _check(len(set(self.zone_types)) == len(self.zone_types), key,
                f"lists a zone type twice: {list(self.zone_types)}")
         key = f"{prefix}.zone_count"
@@ -153,6 +144,16 @@ class LevelSpace:
 def _is_number(x: Any) -> bool:
     return (isinstance(x, int | float | np.integer | np.floating) and not isinstance(x, bool)
             and math.isfinite(float(x)))
+
+
+def _check_names(values: Any, allowed: tuple[str, ...], key: str, what: str) -> None:
+    """`values` is a non-empty list of names out of `allowed` (ConfigError naming `key`)."""
+    choices = ", ".join(allowed)
+    _check(isinstance(values, tuple | list) and len(values) > 0, key,
+           f"needs at least one {what} out of {choices}")
+    for name in values:
+        _check(isinstance(name, str) and name in allowed, key,
+               f"unknown {what} {name!r}; expected some of {choices}")
 
 
 def _check_range(value: Any, bounds: Range, key: str) -> None:
