@@ -30,6 +30,7 @@ import numpy as np
 
 from tabx.controllers import Controller, controlled_actions, with_tiers
 from tabx.env import TabxEnv, random_legal_actions
+from tabx.jit_options import simulator_jit
 from tabx.params import EnvConfig, EnvParams, make_level, repeat_level
 
 RANDOM_BOTH = (Controller("random"), Controller("random"))
@@ -72,16 +73,25 @@ def bench_level(team_size: int, num_zones: int) -> tuple[EnvConfig, EnvParams]:
 def make_rollout(env: TabxEnv, steps: int, with_obs: bool = True,
                  controllers: tuple[Controller, Controller] = RANDOM_BOTH):
     """jit(levels, key) -> final carry of a `steps`-long scan over all envs, each team driven
-    by its controller (random legal actions by default)."""
+    by its controller (random legal actions by default).
+
+    With `with_obs`, every step starts by computing the observation of the state it acts on,
+    where a policy would consume it, and carries it out of the scan so that XLA keeps it: one
+    observation per step taken, none for a start state (the auto-reset's start states are
+    passed in, so the step itself needs no observation). Compiled with
+    `tabx.jit_options.simulator_jit`."""
     plain_random = all(c.kind == "random" for c in controllers)
 
     def rollout(levels: EnvParams, key: jax.Array):
         num_envs = levels.reward_mode.shape[0]
-        obs, states = jax.vmap(env.reset)(jax.random.split(key, num_envs), levels)
+        states = jax.vmap(env.initial_state)(levels)
         start_states = states  # auto-reset into the same levels
+        observe = jax.vmap(env.observe)
 
         def body(carry, _):
             key, states, obs, total = carry
+            if with_obs:
+                obs = observe(states, levels)
             key, k_act = jax.random.split(key)
             if plain_random:
                 masks = jax.vmap(env.action_mask)(states, levels)
@@ -90,15 +100,16 @@ def make_rollout(env: TabxEnv, steps: int, with_obs: bool = True,
                 actions, states = jax.vmap(
                     lambda k, s, p: controlled_actions(k, s, p, None, controllers))(
                     jax.random.split(k_act, num_envs), states, levels)
-            new_obs, states, reward, done, _ = jax.vmap(env.step_autoreset)(
+            _, states, reward, done, _ = jax.vmap(env.step_autoreset)(
                 jax.random.split(key, num_envs), states, actions, levels, start_states)
-            obs = new_obs if with_obs else obs
             return (key, states, obs, total + reward.sum() + done.sum()), None
 
+        obs_shape = jax.eval_shape(observe, states, levels)
+        obs = jnp.zeros(obs_shape.shape if with_obs else (num_envs, 0), obs_shape.dtype)
         carry, _ = jax.lax.scan(body, (key, states, obs, jnp.zeros(())), None, length=steps)
         return carry
 
-    return jax.jit(rollout)
+    return simulator_jit(rollout)
 
 
 def run_one(team_size: int, num_zones: int, num_envs: int, steps: int = 128,

@@ -182,9 +182,10 @@ def _check_single(config: EnvConfig, level: Any, state: Any) -> None:
 @functools.lru_cache(maxsize=16)
 def _start_state_fn(config: EnvConfig) -> Any:
     from tabx.env import TabxEnv  # late: keeps `import tabx.render` light
+    from tabx.jit_options import simulator_jit
 
     # Jitted: op-by-op dispatch of the start state's geometry takes seconds, the compile ~1 s.
-    return jax.jit(TabxEnv(config).initial_state)
+    return simulator_jit(TabxEnv(config).initial_state)
 
 
 def _start_state(config: EnvConfig, level: EnvParams) -> EnvState:

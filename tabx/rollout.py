@@ -19,6 +19,7 @@ import jax.numpy as jnp
 from tabx import constants as C
 from tabx.controllers import Controller, controlled_actions, with_tiers
 from tabx.env import TabxEnv
+from tabx.jit_options import simulator_jit
 from tabx.params import EnvConfig, EnvParams
 from tabx.state import EnvState
 
@@ -34,8 +35,8 @@ def play_episode(config: EnvConfig, level: EnvParams, steps: int, seed: int,
     may be external. `level` must already carry the controllers' tiers (`with_tiers`)."""
     if any(c.kind == "external" for c in controllers):
         raise ValueError("a rollout needs a controller for both teams (not external)")
-    return _play(env_for(config), level, jax.random.key(seed), steps, tuple(controllers),
-                 trajectory)
+    return _play()(env_for(config), level, jax.random.key(seed), steps, tuple(controllers),
+                   trajectory)
 
 
 @functools.lru_cache(maxsize=16)
@@ -63,7 +64,11 @@ def episode(env: TabxEnv, level: EnvParams, key: jax.Array, steps: int,
     return state, total, ended_at, frames
 
 
-_play = jax.jit(episode, static_argnums=(0, 3, 4, 5))
+@functools.cache
+def _play():
+    # Made on first use: choosing the compiler options asks JAX for its backend, which an
+    # import must not start.
+    return simulator_jit(episode, static_argnums=(0, 3, 4, 5))
 
 
 def run_episode(config: EnvConfig, level: EnvParams, steps: int, seed: int,

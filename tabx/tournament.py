@@ -26,6 +26,7 @@ import numpy as np
 from tabx import constants as C
 from tabx.controllers import Controller, controlled_actions
 from tabx.env import TabxEnv
+from tabx.jit_options import simulator_jit
 from tabx.params import HEURISTIC_TIERS, EnvConfig, EnvParams, heuristic_params, stack_levels
 
 BOTH_HEURISTIC = (Controller("heuristic"), Controller("heuristic"))
@@ -76,7 +77,6 @@ def make_batch_runner(config: EnvConfig):
         _, state, reward, _, _ = env.step(key, state, actions, level)
         return state, reward
 
-    @jax.jit
     def run(levels: EnvParams, keys: jax.Array):
         states = jax.vmap(env.initial_state)(levels)
         batch = keys.shape[0]
@@ -95,7 +95,7 @@ def make_batch_runner(config: EnvConfig):
         states, total, _, _ = jax.lax.while_loop(cond, body, init)
         return states.won[:, C.ALLY], states.step, total
 
-    return run
+    return simulator_jit(run)
 
 
 def tier_table(config: EnvConfig, level: EnvParams, episodes: int, seed: int = 0,

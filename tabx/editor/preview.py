@@ -67,6 +67,7 @@ def _build(config, kinds: tuple[str, str]):
 
     from tabx.controllers import Controller, controlled_actions
     from tabx.env import TabxEnv
+    from tabx.jit_options import simulator_jit
 
     env = TabxEnv(config)
     controllers = tuple(Controller(kind) for kind in kinds)
@@ -90,7 +91,7 @@ def _build(config, kinds: tuple[str, str]):
         _, (frames, attacking) = jax.lax.scan(body, state, keys)
         return frame(state, level), frames, attacking
 
-    return jax.jit(play)
+    return simulator_jit(play)
 
 
 def run_preview(scenario: Scenario, steps: int, ally: Any = "heuristic:medium",

@@ -1,0 +1,63 @@
+"""`tabx.jit_options`: which compiler options simulator programs get, that a program compiled
+with them computes exactly what plain `jax.jit` computes, and what the benchmark rollout
+carries as its observation."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+from tabx import jit_options
+from tabx.bench import make_rollout
+from tabx.bench_suite import host_batch
+from tabx.env import TabxEnv
+from tabx.params import EnvConfig
+from tabx.random_levels import random_levels
+
+SMALL = EnvConfig(max_allies=3, max_enemies=3, max_zones=2)
+
+
+@pytest.fixture(scope="module")
+def levels():
+    return jax.device_put(host_batch(random_levels(1, seed=5, config=SMALL, min_units=2,
+                                                   max_units=3)[0], 4))
+
+
+def test_cpu_simulator_programs_use_the_older_fusion_emitters():
+    assert jax.default_backend() == "cpu"
+    assert jit_options.simulator_compiler_options() == {"xla_cpu_use_fusion_emitters": False}
+
+
+def test_default_compiler_on_request_or_on_unmeasured_jaxlib(monkeypatch):
+    monkeypatch.setenv("TABX_DEFAULT_COMPILER", "1")
+    assert jit_options.simulator_compiler_options() is None
+    monkeypatch.delenv("TABX_DEFAULT_COMPILER")
+    monkeypatch.setattr(jit_options, "_MEASURED_JAXLIB_PREFIXES", ("99.",))
+    assert jit_options.simulator_compiler_options() is None
+
+
+def test_simulator_jit_computes_what_plain_jit_computes(levels, monkeypatch):
+    """Same rollout (observations, states, sums) bit for bit with and without the options."""
+    env = TabxEnv(SMALL)
+    tuned = make_rollout(env, 24)(levels, jax.random.key(1))
+    monkeypatch.setattr("tabx.bench.simulator_jit", jax.jit)
+    plain = make_rollout(env, 24)(levels, jax.random.key(1))
+    tuned, plain = jax.tree.leaves(tuned)[1:], jax.tree.leaves(plain)[1:]  # leaf 0: the key
+    assert len(tuned) == len(plain)
+    for a, b in zip(tuned, plain, strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_rollout_carries_the_observation_of_the_last_state_acted_on(levels):
+    """Step k starts by observing the state it acts on: after k steps the carried observation
+    is that of the state after k - 1 steps (same keys: the key is carried and split)."""
+    env = TabxEnv(SMALL)
+    key = jax.random.key(2)
+    _, states_before, _, _ = make_rollout(env, 6)(levels, key)
+    _, _, obs, _ = make_rollout(env, 7)(levels, key)
+    expected = jax.jit(jax.vmap(env.observe))(states_before, levels)
+    np.testing.assert_array_equal(np.asarray(obs), np.asarray(expected))
+    assert np.abs(np.asarray(obs)).sum() > 0
+    _, _, no_obs, _ = make_rollout(env, 3, with_obs=False)(levels, key)
+    assert no_obs.shape == (4, 0)
