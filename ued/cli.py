@@ -60,6 +60,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 def cmd_eval(args: argparse.Namespace) -> int:
     from tabx.controllers import Controller
     from tabx.scenarios import ScenarioError, config_for, load_named
+    from ued import compile_cache
     from ued.config import ConfigError
     from ued.evaluate import TrainedPolicy, format_result, load_policy, parse_side, play
 
@@ -67,6 +68,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         return _list_suites()
     if args.episodes is not None and args.episodes < 1:
         raise UserError(f"--episodes must be >= 1, got {args.episodes}")
+    compile_cache.enable()
     if args.suite is not None:
         return _eval_suite(args)
     if args.json:

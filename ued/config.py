@@ -122,6 +122,7 @@ class RunSection:
     checkpoint_every: int = 50  # updates between checkpoints (the last update always saves)
     keep_checkpoints: int = 3  # checkpoints kept (the newest)
     log_every: int = 1  # updates between TensorBoard / progress writes
+    compile_cache: bool = True  # keep compiled programs on disk (ued/compile_cache.py)
 
     def validate(self, prefix: str = "run") -> None:
         for name in ("checkpoint_every", "keep_checkpoints", "log_every"):

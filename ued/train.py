@@ -30,6 +30,7 @@ import jax.numpy as jnp
 
 from tabx.files import atomic_write_text
 from tabx.params import EnvConfig, EnvParams, stack_levels
+from ued import compile_cache
 from ued.checkpoint import Checkpoints
 from ued.config import ConfigError, TrainConfig, config_from_dict
 from ued.learners import make_learner
@@ -194,6 +195,7 @@ def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = Non
         run_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(run_dir / CONFIG_FILE, config.to_yaml())
 
+    compile_cache.enable(config.run.compile_cache)
     if config.ued.enabled:
         from workers.driver import train_ued
 
