@@ -5,7 +5,9 @@
     assert cc.compiles == 0, cc.traced      # the names of the functions that were traced
 
 Uses JAX's own monitoring events, so it sees every compilation in the process, eager
-operations included. The listener is registered once per process; counters nest.
+operations included. A program loaded from a persistent compilation cache counts as a
+compilation too (JAX times the load as one) and also in `cache_hits`. The listeners are
+registered once per process; counters nest.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import jax
 _TRACE = "/jax/core/compile/jaxpr_trace_duration"
 _COMPILE = "/jax/core/compile/backend_compile_duration"
 _LOWER = "/jax/core/compile/jaxpr_to_mlir_module_duration"
+_CACHE_HIT = "/jax/compilation_cache/cache_hits"
 _LISTENING: list[CompileCounter] = []
 _LOCK = threading.Lock()
 _REGISTERED = [False]
@@ -35,21 +38,31 @@ def _on_duration(event: str, duration: float, **kwargs: object) -> None:
             counter.seconds += duration
 
 
+def _on_event(event: str, **kwargs: object) -> None:
+    if event != _CACHE_HIT:
+        return
+    with _LOCK:
+        for counter in _LISTENING:
+            counter.cache_hits += 1
+
+
 class CompileCounter:
     """Counts XLA compilations (`compiles`), traces (`traces`, with the traced functions'
-    names in `traced`) and their total seconds (trace, lowering and backend compile) while
-    active."""
+    names in `traced`), programs loaded from a persistent compilation cache (`cache_hits`)
+    and the total seconds (trace, lowering and backend compile) while active."""
 
     def __init__(self) -> None:
         self.compiles = 0
         self.traces = 0
         self.traced: list[str] = []
         self.seconds = 0.0
+        self.cache_hits = 0
 
     def __enter__(self) -> CompileCounter:
         with _LOCK:
             if not _REGISTERED[0]:
                 jax.monitoring.register_event_duration_secs_listener(_on_duration)
+                jax.monitoring.register_event_listener(_on_event)
                 _REGISTERED[0] = True
             _LISTENING.append(self)
         return self

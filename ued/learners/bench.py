@@ -76,6 +76,21 @@ def run_train_bench(algorithm: str, scenario: str = "crossfire",
                     opponent: str = "heuristic:medium", num_envs: int = 128,
                     num_steps: int = 512, updates: int = 3,
                     variant: str = "ours") -> TrainBenchResult:
+    # A cold compile, always: JAX decides once per process, at its first compilation, whether
+    # to use a persistent cache, so switch it off before anything here compiles (and check
+    # below that the update really compiled).
+    cache = jax.config.jax_enable_compilation_cache
+    jax.config.update("jax_enable_compilation_cache", False)
+    try:
+        return _run_train_bench(algorithm, scenario, opponent, num_envs, num_steps, updates,
+                                variant)
+    finally:
+        jax.config.update("jax_enable_compilation_cache", cache)
+
+
+def _run_train_bench(algorithm: str, scenario: str, opponent: str, num_envs: int,
+                     num_steps: int, updates: int, variant: str) -> TrainBenchResult:
+    from tabx.compile_counter import CompileCounter
     from tabx.params import repeat_level
     from tabx.scenarios import config_for, load_named
     from ued.config import PPOConfig
@@ -90,16 +105,17 @@ def run_train_bench(algorithm: str, scenario: str = "crossfire",
         reference_like(learner)
     key = jax.random.key(0)
     state = learner.init(key)
-    cache = jax.config.jax_enable_compilation_cache
-    jax.config.update("jax_enable_compilation_cache", False)  # a cold compile, always
-    try:
+    key, k = jax.random.split(key)
+    with CompileCounter() as compiled:  # the update's compilation alone
         t0 = time.perf_counter()
-        key, k = jax.random.split(key)
         state, metrics, _ = learner.update(state, levels, k)
         jax.block_until_ready((state, metrics))
         first = time.perf_counter() - t0
-    finally:
-        jax.config.update("jax_enable_compilation_cache", cache)
+    if compiled.cache_hits or not compiled.compiles:
+        raise RuntimeError("the first update was not compiled (loaded from a persistent "
+                           "compilation cache set up earlier in this process): its time "
+                           "would not be a cold start; run `tabx bench train` in a fresh "
+                           "process")
     times = []
     for _ in range(updates):
         key, k = jax.random.split(key)
