@@ -13,6 +13,10 @@ every command. Nothing is evicted (JAX's size limit needs the `filelock` package
 not depend on for this): the folder grows by about 1 MB per distinct program (a config, a
 jaxlib version) and can be deleted at any time. Benchmarks (`tabx bench`) never turn it on:
 they measure cold compiles.
+
+JAX writes cache entries in place, not atomically: an entry cut short (a process killed while
+writing it) makes later runs warn "Error reading persistent compilation cache entry" and compile
+as if there were no cache (tested: nothing worse happens). Deleting the folder clears it.
 """
 
 from __future__ import annotations
