@@ -104,8 +104,11 @@ def make_rollout(env: TabxEnv, steps: int, with_obs: bool = True,
                 jax.random.split(key, num_envs), states, actions, levels, start_states)
             return (key, states, obs, total + reward.sum() + done.sum()), None
 
-        obs_shape = jax.eval_shape(observe, states, levels)
-        obs = jnp.zeros(obs_shape.shape if with_obs else (num_envs, 0), obs_shape.dtype)
+        if with_obs:
+            spec = jax.eval_shape(observe, states, levels)
+            obs = jnp.zeros(spec.shape, spec.dtype)
+        else:
+            obs = jnp.zeros((num_envs, 0), jnp.float32)
         carry, _ = jax.lax.scan(body, (key, states, obs, jnp.zeros(())), None, length=steps)
         return carry
 
