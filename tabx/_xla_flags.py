@@ -15,6 +15,18 @@ _FLAG = "--xla_cpu_experimental_ynn_fusion_type="
 _KNOWN_JAXLIB_PREFIXES = ("0.10.",)
 
 
+def jaxlib_is_measured() -> bool:
+    """The installed jaxlib is one our XLA:CPU settings were measured on (and known to accept:
+    an unknown XLA option is an error). Also used by `tabx.jit_options`."""
+    try:
+        from importlib.metadata import version
+
+        jaxlib_version = version("jaxlib")
+    except Exception:  # noqa: BLE001 - no metadata: assume not
+        return False
+    return jaxlib_version.startswith(_KNOWN_JAXLIB_PREFIXES)
+
+
 def apply() -> bool:
     """Add the flag if allowed; return True if XLA_FLAGS was changed."""
     if os.environ.get("TABX_KEEP_XLA_FLAGS") == "1":
@@ -22,13 +34,7 @@ def apply() -> bool:
     flags = os.environ.get("XLA_FLAGS", "")
     if "xla_cpu_experimental_ynn_fusion_type" in flags:
         return False
-    try:
-        from importlib.metadata import version
-
-        jaxlib_version = version("jaxlib")
-    except Exception:  # noqa: BLE001 - no metadata: leave the flags alone
-        return False
-    if not jaxlib_version.startswith(_KNOWN_JAXLIB_PREFIXES):
+    if not jaxlib_is_measured():
         return False
     os.environ["XLA_FLAGS"] = f"{flags} {_FLAG}".strip()
     return True

@@ -24,7 +24,8 @@ from typing import Any
 
 import jax
 
-_MEASURED_JAXLIB_PREFIXES = ("0.10.",)
+from tabx import _xla_flags
+
 SIMULATOR_CPU_OPTIONS: dict[str, Any] = {"xla_cpu_use_fusion_emitters": False}
 
 
@@ -33,13 +34,7 @@ def simulator_compiler_options() -> dict[str, Any] | None:
     defaults)."""
     if os.environ.get("TABX_DEFAULT_COMPILER") == "1":
         return None
-    try:
-        from importlib.metadata import version
-
-        jaxlib_version = version("jaxlib")
-    except Exception:  # noqa: BLE001 - no metadata: keep the defaults
-        return None
-    if not jaxlib_version.startswith(_MEASURED_JAXLIB_PREFIXES):
+    if not _xla_flags.jaxlib_is_measured():
         return None
     if jax.default_backend() != "cpu":
         return None

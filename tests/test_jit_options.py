@@ -33,7 +33,7 @@ def test_default_compiler_on_request_or_on_unmeasured_jaxlib(monkeypatch):
     monkeypatch.setenv("TABX_DEFAULT_COMPILER", "1")
     assert jit_options.simulator_compiler_options() is None
     monkeypatch.delenv("TABX_DEFAULT_COMPILER")
-    monkeypatch.setattr(jit_options, "_MEASURED_JAXLIB_PREFIXES", ("99.",))
+    monkeypatch.setattr("tabx._xla_flags._KNOWN_JAXLIB_PREFIXES", ("99.",))
     assert jit_options.simulator_compiler_options() is None
 
 

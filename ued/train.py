@@ -234,8 +234,8 @@ def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = Non
                 metrics = dict(jax.device_get(metrics))  # waits for the update
                 timing, rate = clock.read(done)
                 metrics.update(timing)
-                log_update(writer, bar, callback, done, train_state, metrics, ppo.steps_per_update,
-                     rate, num_updates, last)
+                log_update(writer, bar, callback, done, train_state, metrics,
+                           ppo.steps_per_update, rate, num_updates, last)
             if done % config.run.checkpoint_every == 0 or last:
                 checkpoints.save(done, train_state, key)
     finally:
@@ -245,8 +245,8 @@ def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = Non
 
 
 def log_update(writer: SummaryWriter, bar: Progress | None, callback, done: int,
-         train_state: TrainState, metrics: dict[str, Any], steps_per_update: int,
-         steps_per_s: float, num_updates: int, last: bool, extra: str = "") -> None:
+               train_state: TrainState, metrics: dict[str, Any], steps_per_update: int,
+               steps_per_s: float, num_updates: int, last: bool, extra: str = "") -> None:
     """One logged update: TensorBoard scalars, the progress line, the callback."""
     values = {k: float(v) for k, v in metrics.items()}
     if math.isfinite(steps_per_s):

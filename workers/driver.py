@@ -254,8 +254,8 @@ def train_ued(config: TrainConfig, run_dir: Path, *, resume: bool = False,
                 if run.sfl_scoring_steps:
                     metrics["sfl/scoring_env_steps"] = float(run.sfl_scoring_steps)
                 log_update(writer, bar, callback, done, learner.train_state, metrics,
-                     ppo.steps_per_update, rate, total, last,
-                     extra=_branch_text(counts, run.service))
+                           ppo.steps_per_update, rate, total, last,
+                           extra=_branch_text(counts, run.service))
             if run.evaluators and (done % config.ued.eval_every == 0 or last):
                 _evaluate(run, learner, writer, done, config, stream if progress else None)
             if done % config.run.checkpoint_every == 0 or last:
