@@ -1,17 +1,26 @@
-"""XLA:CPU tuning applied when `tabx` is imported, before JAX starts its backend.
+"""XLA:CPU settings applied when `tabx` is imported, before JAX starts its backend.
 
-On jaxlib 0.10 the CPU compiler routes small reductions through its experimental YNN fusion,
-which is 1.5-2x slower for the (envs, units, units) reductions of this simulator (measured in
-docs/benchmarks.md). We turn it off by adding one flag to XLA_FLAGS, only when the user has
-not set that flag, only for jaxlib versions known to accept it (an unknown XLA flag aborts the
-process), and never when TABX_KEEP_XLA_FLAGS=1. It has no effect once JAX's backend exists.
+1. On jaxlib 0.10 the CPU compiler routes small reductions through its experimental YNN
+   fusion, which is 1.5-2x slower for the (envs, units, units) reductions of this simulator
+   (measured in docs/benchmarks.md): we turn it off.
+2. One CPU device per usable core (`--xla_force_host_platform_device_count`), so that a
+   learner can split its envs over the cores as data-parallel shards (ued/learners/ppo.py
+   `learner_devices`): an update is a long chain of small kernels that one device runs on
+   about 1.25 cores, while two devices with half the envs each run side by side (IPPO on
+   crossfire 1.3x faster on 2 cores, docs/benchmarks.md). Programs that do not ask for the
+   other devices run on the first one as before. Only affects JAX's CPU platform.
+
+Each flag is added to XLA_FLAGS only when the user has not set it, only for jaxlib versions
+known to accept it (an unknown XLA flag aborts the process), and never when
+TABX_KEEP_XLA_FLAGS=1. Nothing changes once JAX's backend exists.
 """
 
 from __future__ import annotations
 
 import os
 
-_FLAG = "--xla_cpu_experimental_ynn_fusion_type="
+_YNN_FLAG = "xla_cpu_experimental_ynn_fusion_type"
+_DEVICES_FLAG = "xla_force_host_platform_device_count"
 _KNOWN_JAXLIB_PREFIXES = ("0.10.",)
 
 
@@ -27,14 +36,26 @@ def jaxlib_is_measured() -> bool:
     return jaxlib_version.startswith(_KNOWN_JAXLIB_PREFIXES)
 
 
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity, else the machine's count)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not Linux
+        return os.cpu_count() or 1
+
+
 def apply() -> bool:
-    """Add the flag if allowed; return True if XLA_FLAGS was changed."""
-    if os.environ.get("TABX_KEEP_XLA_FLAGS") == "1":
+    """Add the flags allowed (see the module doc); return True if XLA_FLAGS was changed."""
+    if os.environ.get("TABX_KEEP_XLA_FLAGS") == "1" or not jaxlib_is_measured():
         return False
     flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_cpu_experimental_ynn_fusion_type" in flags:
+    added = []
+    if _YNN_FLAG not in flags:
+        added.append(f"--{_YNN_FLAG}=")
+    cores = usable_cores()
+    if _DEVICES_FLAG not in flags and cores > 1:
+        added.append(f"--{_DEVICES_FLAG}={cores}")
+    if not added:
         return False
-    if not jaxlib_is_measured():
-        return False
-    os.environ["XLA_FLAGS"] = f"{flags} {_FLAG}".strip()
+    os.environ["XLA_FLAGS"] = " ".join([flags, *added]).strip()
     return True

@@ -6,3 +6,10 @@ import os
 # warm cache would skip compilations that some tests count. Subprocesses inherit the setting;
 # tests/test_compile_cache.py points it at a temporary folder where it needs one.
 os.environ["TABX_COMPILE_CACHE_DIR"] = "off"
+
+# Two CPU devices on every machine, whatever its core count (tabx makes one per core, see
+# tabx/_xla_flags.py), so the data-parallel learner path is tested the same way everywhere.
+# Set before JAX starts its backend; a flag the user set wins.
+if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
+                               + " --xla_force_host_platform_device_count=2").strip()

@@ -14,7 +14,13 @@ import numpy as np
 import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
-from test_learners_helpers import duel_level, tiny_config, tiny_learner, tiny_levels
+from test_learners_helpers import (
+    ENV_CONFIG,
+    duel_level,
+    tiny_config,
+    tiny_learner,
+    tiny_levels,
+)
 
 from tabx import constants as C
 from tabx.params import EnvConfig, repeat_level, stack_levels
@@ -271,8 +277,9 @@ def test_new_levels_never_recompile_and_the_update_stays_on_device():
     learner = tiny_learner()
     state = learner.init(jax.random.key(0))
     levels = tiny_levels()
+    assert len(learner.learner_devices(learner.ppo.num_envs)) == 2  # the data-parallel path
     state, _, _ = learner.update(state, levels, jax.random.key(1))
-    size = learner.update._cache_size()
+    size = learner._update_jit._cache_size()
     # Other levels of the same EnvConfig: other positions, health, opponent tier.
     other = stack_levels([duel_level(ally_x=-10.0 - i, farmer_health=30.0 + 10 * i)
                           for i in range(learner.ppo.num_envs)])
@@ -281,7 +288,52 @@ def test_new_levels_never_recompile_and_the_update_stays_on_device():
     with jax.transfer_guard("disallow"):
         state, metrics, _ = learner.update(state, other, key)
     jax.block_until_ready(metrics)
-    assert learner.update._cache_size() == size
+    assert learner._update_jit._cache_size() == size
+    # Results come back on the caller's device, ready for the next update or a checkpoint.
+    assert {d for leaf in jax.tree.leaves((state, metrics)) for d in leaf.devices()} == {
+        jax.devices()[0]}
+
+
+@pytest.mark.parametrize("algorithm", ["mappo", "ippo"])
+def test_an_update_split_over_two_devices_equals_the_one_device_update(algorithm):
+    """Data parallel: each env draws from its own keys, so both play the same rollout; with
+    one minibatch (the same rows either way) the summed shard gradients give the parameters
+    of the one-device update, up to float summation order."""
+    results = []
+    for devices in (1, 2):
+        ppo = PPOConfig(num_envs=4, num_steps=16, hidden_dim=16, num_minibatches=1,
+                        update_epochs=2, num_devices=devices)
+        learner = make_learner(algorithm, ENV_CONFIG, ppo, "ally", "random", cached=False)
+        assert len(learner.learner_devices(4)) == devices
+        state = learner.init(jax.random.key(0))
+        state, metrics, stats = learner.update(state, tiny_levels(), jax.random.key(1))
+        results.append((jax.device_get(state.params), jax.device_get(metrics),
+                        jax.device_get(stats)))
+    (params_1, metrics_1, stats_1), (params_2, metrics_2, stats_2) = results
+    for a, b in zip(jax.tree.leaves(params_1), jax.tree.leaves(params_2), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    assert float(metrics_1["episode/count"]) > 0
+    for name in ("loss/total", "loss/value", "loss/entropy", "grad_norm", "episode/count",
+                 "episode/win_rate", "value/mean"):
+        np.testing.assert_allclose(metrics_1[name], metrics_2[name], rtol=1e-4, atol=1e-6,
+                                   err_msg=name)
+    for name in ("dones", "rewards", "wins"):  # the same rollout
+        np.testing.assert_array_equal(getattr(stats_1, name), getattr(stats_2, name))
+    # (values to rounding: a matmul over half the rows may sum in another order)
+    np.testing.assert_allclose(stats_1.values, stats_2.values, rtol=1e-5, atol=1e-6)
+
+
+def test_devices_are_chosen_to_split_the_envs_evenly():
+    def devices(**ppo):
+        learner = make_learner("ippo", ENV_CONFIG, PPOConfig(**ppo), "ally", "random",
+                               cached=False)
+        return len(learner.learner_devices(ppo["num_envs"]))
+
+    assert devices(num_envs=8, num_minibatches=2) == 2
+    assert devices(num_envs=6, num_minibatches=2) == 1  # 3 envs per minibatch: no even split
+    assert devices(num_envs=8, num_minibatches=2, num_devices=1) == 1
+    with pytest.raises(ValueError, match="learner.num_devices: 3 devices asked for"):
+        devices(num_envs=12, num_minibatches=2, num_devices=3)
 
 
 def test_learner_plays_the_enemy_team():
@@ -312,6 +364,9 @@ def test_config_defaults_are_the_papers():
     ({"learner": {"gamma": 1.5}}, "learner.gamma"),
     ({"learner": {"num_envs": "many"}}, "learner.num_envs"),
     ({"learner": {"num_envs": 10, "num_minibatches": 4}}, "learner.num_minibatches"),
+    ({"learner": {"num_devices": -1}}, "learner.num_devices"),
+    ({"learner": {"num_envs": 8, "num_minibatches": 2, "num_devices": 3}},
+     "learner.num_devices"),
     ({"env": {"team": "blue"}}, "env.team"),
     ({"env": {"opponent": "heuristic:godlike"}}, "env.opponent"),
     ({"algorithm": "qmix"}, "algorithm"),
@@ -392,9 +447,9 @@ def test_resume_continues_bit_for_bit(tmp_path):
 
     shutil.rmtree(part / CHECKPOINT_DIR / "3")
     learner = learner_for(config)
-    compiled = learner.update._cache_size()
+    compiled = learner._update_jit._cache_size()
     train(run_dir=part, resume=True, progress=False)
-    assert learner.update._cache_size() == compiled  # the resumed run reuses the compilation
+    assert learner._update_jit._cache_size() == compiled  # the resumed run reuses the compilation
     template = learner.init(jax.random.key(0))
     with Checkpoints(full / CHECKPOINT_DIR) as a, Checkpoints(part / CHECKPOINT_DIR) as b:
         state_a, key_a, n_a = a.restore(template)

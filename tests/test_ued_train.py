@@ -138,10 +138,10 @@ def test_every_method_runs_end_to_end_and_never_recompiles(tmp_path):
 
     run_all(0)
     learner = UEDRun(ued_config("accel")).learner
-    sizes = learner.update._cache_size(), learner._score_jit._cache_size()
+    sizes = learner._update_jit._cache_size(), learner._score_jit._cache_size()
     with CompileCounter() as cc:
         run_all(1)  # new seeds: other levels, other buffers, other branch sequences
-    assert (learner.update._cache_size(), learner._score_jit._cache_size()) == sizes
+    assert (learner._update_jit._cache_size(), learner._score_jit._cache_size()) == sizes
     assert sizes[0] == 1
     # Only host-side helpers may trace again (none of them is the update or the rollout).
     assert not [t for t in cc.traced if "update" in t or "score" in t], cc.traced

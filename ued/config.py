@@ -85,6 +85,9 @@ class PPOConfig:
     update_epochs: int = 4
     num_minibatches: int = 4  # minibatches over envs (all agents of an env stay together)
     normalize_advantages: bool = True  # per minibatch, over valid agent steps
+    # Envs split over this many local devices (data parallel; one gradient, summed across
+    # them). 0: as many as divide the envs evenly (ued/learners/ppo.py `learner_devices`).
+    num_devices: int = 0
 
     @property
     def steps_per_update(self) -> int:
@@ -101,6 +104,13 @@ class PPOConfig:
             _check(value >= 1, f"{prefix}.{name}", f"must be >= 1, got {value}")
         _check(self.num_envs % self.num_minibatches == 0, f"{prefix}.num_minibatches",
                f"must divide num_envs ({self.num_envs}), got {self.num_minibatches}")
+        _check(self.num_devices >= 0, f"{prefix}.num_devices",
+               f"must be >= 0 (0: automatic), got {self.num_devices}")
+        if self.num_devices:
+            _check(self.num_envs % (self.num_devices * self.num_minibatches) == 0,
+                   f"{prefix}.num_devices",
+                   f"num_envs ({self.num_envs}) must split into num_devices x num_minibatches "
+                   f"({self.num_devices} x {self.num_minibatches}) equal parts")
         _check(self.lr > 0, f"{prefix}.lr", f"must be > 0, got {self.lr}")
         for name in ("gamma", "gae_lambda"):
             value = getattr(self, name)

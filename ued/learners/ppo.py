@@ -117,11 +117,24 @@ def masked_logits(logits: jax.Array, mask: jax.Array) -> jax.Array:
     return jnp.where(mask, logits, MASKED_LOGIT)
 
 
-def masked_mean(x: jax.Array, valid: jax.Array) -> jax.Array:
+def masked_mean(x: jax.Array, valid: jax.Array, count: jax.Array | None = None) -> jax.Array:
     """Mean of `x` over the entries where `valid` (whatever the others hold, inf or NaN
-    included); 0 if there are none."""
+    included); 0 if there are none. `count` replaces the number of valid entries as the
+    divisor: a data-parallel shard passes the count over all shards, so that the shards'
+    values sum to the mean over all of them."""
     valid = jnp.broadcast_to(valid, x.shape)
-    return jnp.sum(jnp.where(valid, x, 0.0)) / jnp.maximum(jnp.sum(valid), 1).astype(x.dtype)
+    if count is None:
+        count = valid_count(valid)
+    return jnp.sum(jnp.where(valid, x, 0.0)) / count.astype(x.dtype)
+
+
+def valid_count(valid: jax.Array, axis_name: str | None = None) -> jax.Array:
+    """The number of valid entries (over all shards of `axis_name`), at least 1: the
+    divisor of `masked_mean`."""
+    count = jnp.sum(valid)
+    if axis_name is not None:
+        count = jax.lax.psum(count, axis_name)
+    return jnp.maximum(count, 1)
 
 
 def policy_terms(logits: jax.Array, mask: jax.Array, actions: jax.Array
@@ -135,33 +148,41 @@ def policy_terms(logits: jax.Array, mask: jax.Array, actions: jax.Array
 
 
 def ppo_policy_loss(logp: jax.Array, old_logp: jax.Array, advantages: jax.Array,
-                    valid: jax.Array, clip_eps: float) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Clipped surrogate loss over valid entries: (loss, approx KL, clip fraction)."""
+                    valid: jax.Array, clip_eps: float, count: jax.Array | None = None
+                    ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Clipped surrogate loss over valid entries: (loss, approx KL, clip fraction).
+    `count`: the divisor of the means (see `masked_mean`)."""
     log_ratio = logp - old_logp
     ratio = jnp.exp(log_ratio)
     surrogate = jnp.minimum(ratio * advantages,
                             jnp.clip(ratio, 1.0 - clip_eps, 1.0 + clip_eps) * advantages)
-    loss = -masked_mean(surrogate, valid)
-    approx_kl = masked_mean((ratio - 1.0) - log_ratio, valid)
-    clip_frac = masked_mean((jnp.abs(ratio - 1.0) > clip_eps).astype(jnp.float32), valid)
+    loss = -masked_mean(surrogate, valid, count)
+    approx_kl = masked_mean((ratio - 1.0) - log_ratio, valid, count)
+    clip_frac = masked_mean((jnp.abs(ratio - 1.0) > clip_eps).astype(jnp.float32), valid,
+                            count)
     return loss, approx_kl, clip_frac
 
 
 def value_loss(values: jax.Array, old_values: jax.Array, targets: jax.Array,
-               valid: jax.Array, clip_eps: float, clip: bool = True) -> jax.Array:
+               valid: jax.Array, clip_eps: float, clip: bool = True,
+               count: jax.Array | None = None) -> jax.Array:
     """0.5 (V - target)^2 over valid entries; with `clip`, the max with the loss of the value
-    clipped to within clip_eps of the rollout's value (the reference's value clipping)."""
+    clipped to within clip_eps of the rollout's value (the reference's value clipping).
+    `count`: the divisor of the mean (see `masked_mean`)."""
     loss = jnp.square(values - targets)
     if clip:
         clipped = old_values + jnp.clip(values - old_values, -clip_eps, clip_eps)
         loss = jnp.maximum(loss, jnp.square(clipped - targets))
-    return 0.5 * masked_mean(loss, valid)
+    return 0.5 * masked_mean(loss, valid, count)
 
 
-def normalise(x: jax.Array, valid: jax.Array) -> jax.Array:
-    """(x - mean) / (std + 1e-8) over the valid entries."""
-    mean = masked_mean(x, valid)
-    var = masked_mean(jnp.square(x - mean), valid)
+def normalise(x: jax.Array, valid: jax.Array, axis_name: str | None = None) -> jax.Array:
+    """(x - mean) / (std + 1e-8) over the valid entries (of all shards of `axis_name`)."""
+    valid = jnp.broadcast_to(valid, x.shape)
+    count = valid_count(valid, axis_name)
+    total = lambda y: y if axis_name is None else jax.lax.psum(y, axis_name)
+    mean = total(masked_mean(x, valid, count))
+    var = total(masked_mean(jnp.square(x - mean), valid, count))
     return (x - mean) / (jnp.sqrt(var) + 1e-8)
 
 
@@ -205,7 +226,7 @@ class PPOLearner:
         self.obs_dim = env_config.obs_size + self.num_agents  # + one-hot agent id
         self.state_dim = env_config.state_size
         self.optimizer = self._make_optimizer()
-        self.update = jax.jit(self._update, donate_argnums=0)
+        self._update_jit = jax.jit(self._update, donate_argnums=0)
         self._score_jit = None
         self._init_jit = None
 
@@ -293,14 +314,22 @@ class PPOLearner:
             return jax.vmap(self.env.world_state)(states, levels)
         return jnp.zeros((states.step.shape[0], 0), jnp.float32)
 
-    def _join_actions(self, key: jax.Array, states: EnvState, levels: EnvParams,
+    def _join_actions(self, env_keys: jax.Array, states: EnvState, levels: EnvParams,
                       learner_actions: jax.Array) -> tuple[jax.Array, EnvState]:
         num_envs = learner_actions.shape[0]
         external = jnp.zeros((num_envs, self.env_config.num_units), jnp.int32)
         external = external.at[:, self.slots].set(learner_actions)
         controllers = self.controllers
         return jax.vmap(lambda k, s, lv, e: controlled_actions(k, s, lv, e, controllers))(
-            jax.random.split(key, num_envs), states, levels, external)
+            env_keys, states, levels, external)
+
+    @staticmethod
+    def rollout_keys(key: jax.Array, num_steps: int, num_envs: int) -> jax.Array:
+        """(num_steps + 1, num_envs) keys: one per env and scan step of `rollout`. Each env
+        draws only from its own keys, so a rollout does not depend on how its envs are split
+        over devices."""
+        return jax.random.split(key, (num_steps + 1) * num_envs).reshape(num_steps + 1,
+                                                                          num_envs)
 
     def rollout(self, params: Any, levels: EnvParams, key: jax.Array,
                 num_steps: int | None = None
@@ -317,9 +346,17 @@ class PPOLearner:
         observation and network pass of the state after the last step, is the bootstrap; its
         env step is discarded. The program thus holds one copy of the observation, world
         state and network step instead of two, which compiles faster (1/T more env steps)."""
-        env, team = self.env, self.team
         num_envs = levels.reward_mode.shape[0]
         num_steps = self.ppo.num_steps if num_steps is None else num_steps
+        return self.rollout_with_keys(params, levels,
+                                      self.rollout_keys(key, num_steps, num_envs))
+
+    def rollout_with_keys(self, params: Any, levels: EnvParams, keys: jax.Array
+                          ) -> tuple[Transition, dict[str, jax.Array], jax.Array, jax.Array]:
+        """`rollout` with its keys given: (num_steps + 1, num_envs) from `rollout_keys` (or
+        the envs' columns of them: a data-parallel shard plays its own envs)."""
+        env, team = self.env, self.team
+        num_envs = levels.reward_mode.shape[0]
         states = jax.vmap(env.initial_state)(levels)
         start_states = states
         observe = jax.vmap(env.observe)
@@ -327,20 +364,19 @@ class PPOLearner:
         zeros_i = jnp.zeros(num_envs, jnp.int32)
         carry = (states, self.initial_hidden(num_envs), zeros_f, zeros_i, zeros_i)
 
-        def body(carry, step_key):
+        def body(carry, env_keys):
             states, hidden, ep_return, ep_length, first = carry
-            k_act, k_other = jax.random.split(step_key)
+            k_act, k_other = jnp.unstack(jax.vmap(jax.random.split)(env_keys), axis=1)
             ob = observe(states, levels)[:, self.slots]
             mask = jax.vmap(env.action_mask)(states, levels)[:, self.slots]
             world = self._world(states, levels)
             hidden, logits, value = self.act_step(params, self.agent_inputs(ob), world, hidden)
             logits = masked_logits(logits, mask)
-            action = jax.random.categorical(k_act, logits).astype(jnp.int32)
+            action = jax.vmap(jax.random.categorical)(k_act, logits).astype(jnp.int32)
             logp = jnp.take_along_axis(jax.nn.log_softmax(logits), action[..., None], -1)[..., 0]
             actions, states_h = self._join_actions(k_other, states, levels, action)
-            _, next_states, reward, done, info = jax.vmap(
-                env.step_autoreset, in_axes=(None, 0, 0, 0, 0))(
-                step_key, states_h, actions, levels, start_states)
+            _, next_states, reward, done, info = jax.vmap(env.step_autoreset)(
+                env_keys, states_h, actions, levels, start_states)
             hidden = jax.tree.map(
                 lambda h: jnp.where(done.reshape(done.shape + (1,) * (h.ndim - 1)), 0.0, h),
                 hidden)
@@ -364,45 +400,123 @@ class PPOLearner:
                      jnp.where(done, 0, ep_length), jnp.where(done, 0, first))
             return carry, (transition, record)
 
-        _, (traj, records) = jax.lax.scan(body, carry, jax.random.split(key, num_steps + 1))
+        _, (traj, records) = jax.lax.scan(body, carry, keys)
         last_value, last_alive = traj.value[-1], traj.alive[-1]
         traj, records = jax.tree.map(lambda x: x[:-1], (traj, records))
         return traj, records, last_value, last_alive
 
-    def _loss(self, params: Any, batch: dict[str, jax.Array]
+    def _loss(self, params: Any, batch: dict[str, jax.Array], axis_name: str | None = None
               ) -> tuple[jax.Array, dict[str, jax.Array]]:
+        """The PPO loss of a minibatch. On a data-parallel shard (`axis_name`), every mean
+        divides by the count over all shards, so the shards' losses (and gradients) sum to
+        those of the whole minibatch."""
         ppo = self.ppo
         logits, values = self.evaluate_sequence(
             params, self.agent_inputs(batch["obs"]), batch["world"], batch["starts"])
         valid = batch["alive"]
+        count = valid_count(valid, axis_name)
         logp, entropy = policy_terms(logits, batch["mask"], batch["action"])
         adv = batch["adv"]
         if adv.ndim < valid.ndim:  # one advantage per env (MAPPO): every agent of the env
             adv = jnp.broadcast_to(adv[..., None], valid.shape)
         if ppo.normalize_advantages:
-            adv = normalise(adv, valid)
+            adv = normalise(adv, valid, axis_name)
         pg_loss, approx_kl, clip_frac = ppo_policy_loss(logp, batch["logp"], adv, valid,
-                                                        ppo.clip_eps)
-        value_valid = valid if values.ndim == valid.ndim else jnp.ones(values.shape, bool)
+                                                        ppo.clip_eps, count)
+        if values.ndim == valid.ndim:
+            value_valid, value_count = valid, count
+        else:  # one value per env (MAPPO): every step of the env
+            value_valid = jnp.ones(values.shape, bool)
+            value_count = valid_count(value_valid, axis_name)
         v_loss = value_loss(values, batch["value"], batch["targets"], value_valid,
-                            ppo.clip_eps, ppo.clip_value)
-        ent = masked_mean(entropy, valid)
+                            ppo.clip_eps, ppo.clip_value, value_count)
+        ent = masked_mean(entropy, valid, count)
         total = pg_loss + ppo.vf_coef * v_loss - ppo.ent_coef * ent
         return total, {"loss/total": total, "loss/policy": pg_loss, "loss/value": v_loss,
                        "loss/entropy": ent, "loss/approx_kl": approx_kl,
                        "loss/clip_frac": clip_frac}
+
+    def learner_devices(self, num_envs: int) -> tuple[jax.Device, ...]:
+        """The local devices an update of `num_envs` envs is split over (data parallel):
+        `ppo.num_devices` of them, or with 0 the most that split the envs into equal
+        minibatch shares. On CPU, `tabx` makes one device per core (tabx/_xla_flags.py)."""
+        available = jax.local_devices()
+        minibatches = self.ppo.num_minibatches
+        wanted = self.ppo.num_devices
+        if wanted:
+            if wanted > len(available):
+                raise ValueError(f"learner.num_devices: {wanted} devices asked for, "
+                                 f"{len(available)} available ({available[0].platform})")
+            if num_envs % (wanted * minibatches):
+                raise ValueError(f"learner.num_devices: {num_envs} envs do not split into "
+                                 f"{wanted} devices x {minibatches} minibatches")
+            return tuple(available[:wanted])
+        count = max(d for d in range(1, len(available) + 1)
+                    if num_envs % (d * minibatches) == 0)
+        return tuple(available[:count])
+
+    def update(self, train_state: TrainState, levels: EnvParams, key: jax.Array
+               ) -> tuple[TrainState, dict[str, jax.Array], RolloutStats]:
+        """One PPO update on `levels` (a batch of `num_envs` levels): (train state, metrics,
+        rollout stats). Jitted once per learner; other levels never recompile it.
+
+        Split over several devices (`learner_devices`), the arguments are placed on them and
+        the results come back on the first one, where the caller's arrays live; on one device
+        the train state is donated (do not reuse a train state passed in)."""
+        num_envs = levels.reward_mode.shape[0]
+        if num_envs % self.ppo.num_minibatches:
+            raise ValueError(f"{num_envs} envs do not split into {self.ppo.num_minibatches} "
+                             f"minibatches")
+        devices = self.learner_devices(num_envs)
+        if len(devices) == 1:
+            return self._update_jit(train_state, levels, key)
+        mesh = jax.sharding.Mesh(devices, ("envs",))
+        replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+        by_env = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("envs"))
+        out = self._update_jit(jax.device_put(train_state, replicated),
+                               jax.device_put(levels, by_env), jax.device_put(key, replicated))
+        return jax.device_put(out, devices[0])
 
     def _update(self, train_state: TrainState, levels: EnvParams, key: jax.Array
                 ) -> tuple[TrainState, dict[str, jax.Array], RolloutStats]:
         ppo = self.ppo
         levels = self.prepare_levels(levels)
         num_envs = levels.reward_mode.shape[0]
-        if num_envs % ppo.num_minibatches:
-            raise ValueError(f"{num_envs} envs do not split into {ppo.num_minibatches} "
-                             f"minibatches")
         k_rollout, k_train = jax.random.split(key)
-        traj, records, last_value, last_alive = self.rollout(train_state.params, levels,
-                                                             k_rollout)
+        keys = self.rollout_keys(k_rollout, ppo.num_steps, num_envs)
+        params, opt_state = train_state.params, train_state.opt_state
+        devices = self.learner_devices(num_envs)
+        if len(devices) == 1:
+            out = self._train(params, opt_state, levels, keys, k_train)
+        else:
+            # Data parallel: each device plays and learns on its share of the envs; the
+            # gradient of a minibatch is summed over the devices (`_train`), so every device
+            # applies the same update and the parameters stay replicated.
+            P = jax.sharding.PartitionSpec
+            by_env, by_time_env = P("envs"), P(None, "envs")
+            out = jax.shard_map(
+                functools.partial(self._train, axis_name="envs"),
+                mesh=jax.sharding.Mesh(devices, ("envs",)),
+                in_specs=(P(), P(), by_env, by_time_env, P()),
+                out_specs=(P(), P(), P(), by_time_env, by_time_env), check_vma=False,
+            )(params, opt_state, levels, keys, k_train)
+        params, opt_state, aux, records, stats = out
+        metrics = {k: jnp.mean(v) for k, v in aux.items()}
+        metrics.update(episode_metrics(records))
+        metrics["value/mean"] = jnp.mean(stats.values)
+        new_state = TrainState(params=params, opt_state=opt_state,
+                               update=train_state.update + 1)
+        return new_state, metrics, stats
+
+    def _train(self, params: Any, opt_state: Any, levels: EnvParams, keys: jax.Array,
+               key: jax.Array, axis_name: str | None = None) -> tuple[Any, ...]:
+        """Rollout, GAE and the epochs of minibatch updates on (a shard of) the envs:
+        (params, opt_state, per-minibatch losses, episode records, rollout stats). With
+        `axis_name`, one data-parallel shard: minibatches take the same share of every
+        shard's envs, and gradients and losses are summed over the shards."""
+        ppo = self.ppo
+        num_envs = levels.reward_mode.shape[0]
+        traj, records, last_value, last_alive = self.rollout_with_keys(params, levels, keys)
         values, last_value = self.value_terms(traj.value, last_value, traj.alive, last_alive)
         dones = traj.done
         rewards = traj.reward
@@ -414,14 +528,20 @@ class PPOLearner:
         batch = {"obs": traj.obs, "world": traj.world, "mask": traj.mask, "alive": traj.alive,
                  "action": traj.action, "logp": traj.logp, "value": traj.value,
                  "adv": adv, "targets": targets, "starts": starts}
-        grad_fn = jax.value_and_grad(self._loss, has_aux=True)
+        grad_fn = jax.value_and_grad(functools.partial(self._loss, axis_name=axis_name),
+                                     has_aux=True)
+        total = (lambda x: x) if axis_name is None else functools.partial(jax.lax.psum,
+                                                                           axis_name=axis_name)
         per_minibatch = num_envs // ppo.num_minibatches
+        if axis_name is not None:  # each shard its own order of its envs
+            key = jax.random.fold_in(key, jax.lax.axis_index(axis_name))
 
         def epoch(carry, k):
             def minibatch(carry, idx):
                 params, opt_state = carry
                 mb = jax.tree.map(lambda x: jnp.take(x, idx, axis=1), batch)
                 (_, aux), grads = grad_fn(params, mb)
+                aux, grads = total((aux, grads))
                 aux["grad_norm"] = optax.tree.norm(grads)
                 updates, opt_state = self.optimizer.update(grads, opt_state, params)
                 return (optax.apply_updates(params, updates), opt_state), aux
@@ -431,15 +551,8 @@ class PPOLearner:
             return jax.lax.scan(minibatch, carry, order)
 
         (params, opt_state), aux = jax.lax.scan(
-            epoch, (train_state.params, train_state.opt_state),
-            jax.random.split(k_train, ppo.update_epochs))
-        metrics = {k: jnp.mean(v) for k, v in aux.items()}
-        metrics.update(episode_metrics(records))
-        metrics["value/mean"] = jnp.mean(stats.values)
-        new_state = TrainState(params=params, opt_state=opt_state,
-                               update=train_state.update + 1)
-        return new_state, metrics, stats
-
+            epoch, (params, opt_state), jax.random.split(key, ppo.update_epochs))
+        return params, opt_state, aux, records, stats
 
     @staticmethod
     def _stats(traj: Transition, values: jax.Array, adv: jax.Array) -> RolloutStats:
@@ -499,4 +612,4 @@ def cached_learner(cls: type, env_config: EnvConfig, ppo: PPOConfig, team: str |
 
 __all__ = ["PPOLearner", "RolloutStats", "TrainState", "Transition", "cached_learner",
            "episode_metrics", "gae", "masked_logits", "masked_mean", "normalise",
-           "policy_terms", "ppo_policy_loss", "team_mean", "value_loss"]
+           "policy_terms", "ppo_policy_loss", "team_mean", "valid_count", "value_loss"]
