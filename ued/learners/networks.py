@@ -22,17 +22,20 @@ import math
 
 import jax
 import jax.numpy as jnp
+from jax.ad_checkpoint import checkpoint_name
 
 Params = dict
 LN_EPS = 1e-6
 # Time steps per iteration of the training scans: a loop iteration has a fixed cost on XLA:CPU
 # that is large next to one step of a 96-row minibatch; 4 steps per iteration made a whole
 # update about 1.4x faster than 1, for 3 s more compilation (MAPPO's update compiled in 9.5 s
-# with 1, 12.6 s with 4); 8 and 16 were no faster and compile longer still. Networks smaller
-# than UNROLL_MIN_SIZE (rows x hidden units per step, summed over the networks of the scan)
-# train fast anyway, and for them compilation dominates: they are not unrolled.
+# with 1, 12.6 s with 4); 8 and 16 were no faster and compile longer still. Smaller networks
+# (rows x hidden units per step, summed over the networks of the scan, below UNROLL_MIN_SIZE)
+# are not unrolled: on the 2-core VM, MAPPO split over two devices (48 actor + 16 critic rows
+# per device) ran no faster unrolled 2 or 4 times (6.5-6.7 s per update either way) and its
+# first update took 19-20 s instead of 16.7 s.
 SEQUENCE_UNROLL = 4
-UNROLL_MIN_SIZE = 64 * 128
+UNROLL_MIN_SIZE = 96 * 128
 
 
 # --- initialisation --------------------------------------------------------------------------
@@ -83,8 +86,42 @@ def trunk_init(key: jax.Array, n_in: int, hidden: int, head_scales: tuple[float,
 # --- forward pieces --------------------------------------------------------------------------
 
 
+@jax.custom_vjp
+def _matmul_t(x: jax.Array, w: jax.Array, w_t: jax.Array) -> jax.Array:
+    return x @ w
+
+
+def _matmul_t_fwd(x, w, w_t):
+    return x @ w, (x, w_t)
+
+
+def _matmul_t_bwd(res, g):
+    x, w_t = res
+    return g @ w_t, jnp.einsum("...i,...o->io", x, g), None
+
+
+_matmul_t.defvjp(_matmul_t_fwd, _matmul_t_bwd)
+
+
+def linear(x: jax.Array, w: jax.Array, w_t: jax.Array | None = None) -> jax.Array:
+    """x @ w. With `w_t` (w transposed, laid out row-major once per gradient step by
+    `with_transposes`), the input gradient is g @ w_t rather than a product against w's
+    rows: XLA:CPU runs that transposed-operand product 1.3-3x slower on small minibatches."""
+    return x @ w if w_t is None else _matmul_t(x, w, w_t)
+
+
+def with_transposes(p: Params) -> Params:
+    """`p` with row-major transposes (no gradient) of the weights whose input gradient the
+    backward pass needs: the GRU's and the layers after it (the embedding's input, the
+    observation, needs none)."""
+    t = lambda w: jax.lax.stop_gradient(jnp.transpose(w))
+    return {**p, "gru": {**p["gru"], "wi_t": t(p["gru"]["wi"]), "wh_t": t(p["gru"]["wh"])},
+            "hidden": {**p["hidden"], "w_t": t(p["hidden"]["w"])},
+            "out": {**p["out"], "w_t": t(p["out"]["w"])}}
+
+
 def dense(p: Params, x: jax.Array) -> jax.Array:
-    return x @ p["w"] + p["b"]
+    return linear(x, p["w"], p.get("w_t")) + p["b"]
 
 
 def _row_mean(x: jax.Array) -> jax.Array:
@@ -107,7 +144,8 @@ def layer_norm(p: Params, x: jax.Array) -> jax.Array:
 def encode(p: Params, x: jax.Array) -> jax.Array:
     """(..., n_in) -> (..., 3H): embedding and the GRU's input projection (no recurrence)."""
     e = jax.nn.relu(layer_norm(p["ln_embed"], dense(p["embed"], x)))
-    return e @ p["gru"]["wi"] + p["gru"]["bi"]
+    gi = linear(e, p["gru"]["wi"], p["gru"].get("wi_t")) + p["gru"]["bi"]
+    return checkpoint_name(gi, "gru_gi")
 
 
 def decode(p: Params, h: jax.Array) -> jax.Array:
@@ -130,7 +168,8 @@ def _gates(gi: jax.Array, gh: jax.Array, h: jax.Array
 
 def gru_cell(p: Params, gi: jax.Array, h: jax.Array) -> jax.Array:
     """One GRU step from the encoded input `gi` (..., 3H) and hidden `h` (..., H)."""
-    return _gates(gi, h @ p["wh"] + p["bh"], h)[0]
+    gh = checkpoint_name(linear(h, p["wh"], p.get("wh_t")) + p["bh"], "gru_gh")
+    return _gates(gi, gh, h)[0]
 
 
 def step(p: Params, x: jax.Array, h: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -150,11 +189,16 @@ def sequences(params: tuple[Params, ...], xs: tuple[jax.Array, ...],
     resetting its hidden state to zeros before every step where `starts[i]` (T, B_i).
 
     One scan step runs every network for one time step, under `jax.checkpoint`: the forward
-    pass keeps only the hidden states of each step, and the backward pass recomputes the
-    step's activations (in cache) instead of reading them back from memory. On a CPU this
-    trades a third more matmul work for much less memory traffic; running the networks of
-    MAPPO (actor and critic) in the same step halves the loop iterations and lets their
-    independent matmuls run side by side."""
+    pass keeps the hidden states and the GRU's two projections (`gru_gi`, `gru_gh`: the
+    largest matmuls) of each step, and the backward pass recomputes the step's other
+    activations (in cache) instead of reading them back from memory. On a CPU this trades
+    more matmul work for much less memory traffic (saving every activation was 15-25 %
+    slower, saving none 3-5 % slower than saving the two projections, measured on two
+    devices); running the networks of MAPPO (actor and critic) in the same step halves the
+    loop iterations and lets their independent matmuls run side by side. The backward pass
+    multiplies by weights transposed once per call (`with_transposes`)."""
+    params = tuple(with_transposes(p) for p in params)
+
     def body(hs, inputs):
         outs, new_hs = [], []
         for p, h, (x_t, start_t) in zip(params, hs, inputs, strict=True):
@@ -163,8 +207,8 @@ def sequences(params: tuple[Params, ...], xs: tuple[jax.Array, ...],
             outs.append(out)
         return tuple(new_hs), tuple(outs)
 
-    body = jax.checkpoint(body, prevent_cse=False,
-                          policy=jax.checkpoint_policies.nothing_saveable)
+    saved = jax.checkpoint_policies.save_only_these_names("gru_gi", "gru_gh")
+    body = jax.checkpoint(body, prevent_cse=False, policy=saved)
     size = sum(h.shape[0] * h.shape[-1] for h in h0s)
     unroll = SEQUENCE_UNROLL if size >= UNROLL_MIN_SIZE else 1
     return jax.lax.scan(body, tuple(h0s), tuple(zip(xs, starts, strict=True)),
