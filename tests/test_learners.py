@@ -323,6 +323,30 @@ def test_an_update_split_over_two_devices_equals_the_one_device_update(algorithm
     np.testing.assert_allclose(stats_1.values, stats_2.values, rtol=1e-5, atol=1e-6)
 
 
+def test_scoring_split_over_two_devices_equals_one_device_scoring():
+    """`score` plays each env from its own keys: same episodes, values to rounding."""
+    results = []
+    for devices in (1, 2):
+        ppo = PPOConfig(num_envs=4, num_steps=16, hidden_dim=16, num_minibatches=2,
+                        num_devices=devices)
+        learner = make_learner("ippo", ENV_CONFIG, ppo, "ally", "random", cached=False)
+        params = learner.init(jax.random.key(0)).params
+        levels = jax.tree.map(jnp.asarray, repeat_level(duel_level(), 6))  # 6: not 4
+        assert len(learner.learner_devices(6, minibatches=1, strict=False)) == devices
+        metrics, stats = learner.score(params, levels, jax.random.key(4), 12)
+        assert stats.dones.shape == (12, 6)
+        assert {d for leaf in jax.tree.leaves((metrics, stats)) for d in leaf.devices()} == {
+            jax.devices()[0]}
+        results.append(jax.device_get((metrics, stats)))
+    (metrics_1, stats_1), (metrics_2, stats_2) = results
+    assert metrics_1["episode/count"] == metrics_2["episode/count"] > 0
+    for name in ("dones", "rewards", "wins"):
+        np.testing.assert_array_equal(getattr(stats_1, name), getattr(stats_2, name))
+    for name in ("values", "advantages"):
+        np.testing.assert_allclose(getattr(stats_1, name), getattr(stats_2, name), rtol=1e-5,
+                                   atol=1e-6)
+
+
 def test_devices_are_chosen_to_split_the_envs_evenly():
     def devices(**ppo):
         learner = make_learner("ippo", ENV_CONFIG, PPOConfig(**ppo), "ally", "random",
@@ -334,6 +358,14 @@ def test_devices_are_chosen_to_split_the_envs_evenly():
     assert devices(num_envs=8, num_minibatches=2, num_devices=1) == 1
     with pytest.raises(ValueError, match="learner.num_devices: 3 devices asked for"):
         devices(num_envs=12, num_minibatches=2, num_devices=3)
+    # Scoring takes any batch: as many devices as divide it, at most the configured number.
+    learner = make_learner("ippo", ENV_CONFIG, PPOConfig(num_envs=8, num_minibatches=2,
+                                                         num_devices=1), "ally", "random")
+    assert len(learner.learner_devices(6, minibatches=1, strict=False)) == 1
+    learner = make_learner("ippo", ENV_CONFIG, PPOConfig(num_envs=8, num_minibatches=2),
+                           "ally", "random")
+    assert len(learner.learner_devices(6, minibatches=1, strict=False)) == 2
+    assert len(learner.learner_devices(5, minibatches=1, strict=False)) == 1
 
 
 def test_learner_plays_the_enemy_team():

@@ -436,14 +436,18 @@ class PPOLearner:
                        "loss/entropy": ent, "loss/approx_kl": approx_kl,
                        "loss/clip_frac": clip_frac}
 
-    def learner_devices(self, num_envs: int) -> tuple[jax.Device, ...]:
-        """The local devices an update of `num_envs` envs is split over (data parallel):
-        `ppo.num_devices` of them, or with 0 the most that split the envs into equal
-        minibatch shares. On CPU, `tabx` makes one device per core (tabx/_xla_flags.py)."""
+    def learner_devices(self, num_envs: int, minibatches: int | None = None,
+                        strict: bool = True) -> tuple[jax.Device, ...]:
+        """The local devices `num_envs` envs are split over (data parallel): `ppo.num_devices`
+        of them, or with 0 the most that split the envs into equal shares of each of
+        `minibatches` (default: the config's) minibatches. Not `strict` (scoring batches of
+        any size): at most `ppo.num_devices`, as many as divide the envs evenly. On CPU,
+        `tabx` makes one device per core (tabx/_xla_flags.py)."""
         available = jax.local_devices()
-        minibatches = self.ppo.num_minibatches
+        if minibatches is None:
+            minibatches = self.ppo.num_minibatches
         wanted = self.ppo.num_devices
-        if wanted:
+        if wanted and strict:
             if wanted > len(available):
                 raise ValueError(f"learner.num_devices: {wanted} devices asked for, "
                                  f"{len(available)} available ({available[0].platform})")
@@ -451,8 +455,8 @@ class PPOLearner:
                 raise ValueError(f"learner.num_devices: {num_envs} envs do not split into "
                                  f"{wanted} devices x {minibatches} minibatches")
             return tuple(available[:wanted])
-        count = max(d for d in range(1, len(available) + 1)
-                    if num_envs % (d * minibatches) == 0)
+        most = min(wanted, len(available)) if wanted else len(available)
+        count = max(d for d in range(1, most + 1) if num_envs % (d * minibatches) == 0)
         return tuple(available[:count])
 
     def update(self, train_state: TrainState, levels: EnvParams, key: jax.Array
@@ -467,15 +471,8 @@ class PPOLearner:
         if num_envs % self.ppo.num_minibatches:
             raise ValueError(f"{num_envs} envs do not split into {self.ppo.num_minibatches} "
                              f"minibatches")
-        devices = self.learner_devices(num_envs)
-        if len(devices) == 1:
-            return self._update_jit(train_state, levels, key)
-        mesh = jax.sharding.Mesh(devices, ("envs",))
-        replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
-        by_env = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("envs"))
-        out = self._update_jit(jax.device_put(train_state, replicated),
-                               jax.device_put(levels, by_env), jax.device_put(key, replicated))
-        return jax.device_put(out, devices[0])
+        return _on_devices(self._update_jit, self.learner_devices(num_envs), train_state,
+                           levels, key)
 
     def _update(self, train_state: TrainState, levels: EnvParams, key: jax.Array
                 ) -> tuple[TrainState, dict[str, jax.Array], RolloutStats]:
@@ -493,10 +490,10 @@ class PPOLearner:
             # gradient of a minibatch is summed over the devices (`_train`), so every device
             # applies the same update and the parameters stay replicated.
             P = jax.sharding.PartitionSpec
-            by_env, by_time_env = P("envs"), P(None, "envs")
+            by_env, by_time_env = P(_ENVS), P(None, _ENVS)
             out = jax.shard_map(
-                functools.partial(self._train, axis_name="envs"),
-                mesh=jax.sharding.Mesh(devices, ("envs",)),
+                functools.partial(self._train, axis_name=_ENVS),
+                mesh=jax.sharding.Mesh(devices, (_ENVS,)),
                 in_specs=(P(), P(), by_env, by_time_env, P()),
                 out_specs=(P(), P(), P(), by_time_env, by_time_env), check_vma=False,
             )(params, opt_state, levels, keys, k_train)
@@ -564,25 +561,63 @@ class PPOLearner:
     def _score(self, params: Any, levels: EnvParams, key: jax.Array, num_steps: int
                ) -> tuple[dict[str, jax.Array], RolloutStats]:
         levels = self.prepare_levels(levels)
-        traj, records, last_value, last_alive = self.rollout(params, levels, key, num_steps)
+        num_envs = levels.reward_mode.shape[0]
+        keys = self.rollout_keys(key, num_steps, num_envs)
+        devices = self.learner_devices(num_envs, minibatches=1, strict=False)
+        if len(devices) == 1:
+            records, stats = self._score_envs(params, levels, keys)
+        else:  # each device plays its share of the envs
+            P = jax.sharding.PartitionSpec
+            records, stats = jax.shard_map(
+                self._score_envs, mesh=jax.sharding.Mesh(devices, (_ENVS,)),
+                in_specs=(P(), P(_ENVS), P(None, _ENVS)),
+                out_specs=(P(None, _ENVS), P(None, _ENVS)), check_vma=False,
+            )(params, levels, keys)
+        return episode_metrics(records), stats
+
+    def _score_envs(self, params: Any, levels: EnvParams, keys: jax.Array
+                    ) -> tuple[dict[str, jax.Array], RolloutStats]:
+        traj, records, last_value, last_alive = self.rollout_with_keys(params, levels, keys)
         values, last_value = self.value_terms(traj.value, last_value, traj.alive, last_alive)
         dones, rewards = traj.done, traj.reward
         if values.ndim == 3:
             dones, rewards = dones[..., None], rewards[..., None]
         adv, _ = gae(rewards, values, dones, last_value, self.ppo.gamma, self.ppo.gae_lambda)
-        return episode_metrics(records), self._stats(traj, values, adv)
+        return records, self._stats(traj, values, adv)
 
     def score(self, params: Any, levels: EnvParams, key: jax.Array,
               num_steps: int | None = None) -> tuple[dict[str, jax.Array], RolloutStats]:
         """Roll the policy out on `levels` like `update` does, without learning: (episode
         metrics, RolloutStats) for scoring new or mutated levels (Robust PLR, ACCEL, SFL).
-        `num_steps` (default: the PPO rollout length) is static: one compile per length."""
+        `num_steps` (default: the PPO rollout length) is static: one compile per length.
+        The envs are split over devices as in `update` (any count that divides them)."""
         num_steps = self.ppo.num_steps if num_steps is None else int(num_steps)
         if num_steps < 1:
             raise ValueError(f"num_steps must be >= 1, got {num_steps}")
         if self._score_jit is None:
             self._score_jit = jax.jit(self._score, static_argnums=3)
-        return self._score_jit(params, levels, key, num_steps)
+        devices = self.learner_devices(levels.reward_mode.shape[0], minibatches=1,
+                                       strict=False)
+        return _on_devices(lambda p, lv, k: self._score_jit(p, lv, k, num_steps), devices,
+                           params, levels, key)
+
+
+_ENVS = "envs"  # the mesh axis data-parallel learners split their envs over
+
+
+def _on_devices(fn: Any, devices: tuple[jax.Device, ...], state: Any, levels: EnvParams,
+                key: jax.Array) -> Any:
+    """`fn(state, levels, key)` with `state` and `key` replicated on `devices` and `levels`
+    split over them by env, the results brought back to the first device (where the caller's
+    arrays live). On one device, `fn` as it is."""
+    if len(devices) == 1:
+        return fn(state, levels, key)
+    mesh = jax.sharding.Mesh(devices, (_ENVS,))
+    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+    by_env = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(_ENVS))
+    out = fn(jax.device_put(state, replicated), jax.device_put(levels, by_env),
+             jax.device_put(key, replicated))
+    return jax.device_put(out, devices[0])
 
 
 def episode_metrics(records: dict[str, jax.Array]) -> dict[str, jax.Array]:
