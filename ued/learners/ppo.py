@@ -13,6 +13,11 @@ restarts in the same level), computes GAE, and runs `update_epochs` epochs of
 `num_minibatches` minibatches over envs (all agents of an env stay in one minibatch, so
 sequences are whole and the recurrent state starts from zeros at the rollout start).
 
+With several local devices (one per core on a CPU, see tabx/_xla_flags.py) the envs are split
+over them (`learner_devices`): each device plays and learns on its share inside a `shard_map`,
+the loss means divide by counts over all devices and the gradients are summed (`lax.psum`),
+so the parameters stay replicated; arguments and results live on the first device as before.
+
 Agents are the unit slots of the learner's team (ally slots 0..A-1, or the enemy slots after
 them in the flipped setting); one network is shared by all of them, with a one-hot agent id
 appended to the observation. What the masks mean:
