@@ -35,6 +35,7 @@ class TrainBenchResult:
     update_s: float  # median of the timed updates
     steps_per_s: float
     updates: int
+    devices: int = 1  # the envs were split over this many devices (data parallel)
 
 
 def reference_like(learner: Any) -> Any:
@@ -125,7 +126,8 @@ def _run_train_bench(algorithm: str, scenario: str, opponent: str, num_envs: int
         times.append(time.perf_counter() - t0)
     median = statistics.median(times) if times else float("nan")
     return TrainBenchResult(algorithm, variant, scenario, opponent, num_envs, num_steps, first,
-                            median, num_envs * num_steps / median, updates)
+                            median, num_envs * num_steps / median, updates,
+                            len(learner.learner_devices(num_envs)))
 
 
 def bench_train(args: argparse.Namespace) -> int:
@@ -136,14 +138,15 @@ def bench_train(args: argparse.Namespace) -> int:
           f"{args.num_envs} envs x {args.num_steps} steps per update"
           f"{'; reference-like training structure' if args.reference_like else ''}",
           flush=True)
-    print(f"{'algorithm':>9} {'first update s':>14} {'update s':>9} {'steps/s':>10}", flush=True)
+    print(f"{'algorithm':>9} {'first update s':>14} {'update s':>9} {'steps/s':>10} "
+          f"{'devices':>7}", flush=True)
     results = []
     for algorithm in args.algorithms:
         r = run_train_bench(algorithm, args.scenario, args.opponent, args.num_envs,
                             args.num_steps, args.updates, variant)
         results.append(r)
         print(f"{algorithm:>9} {r.first_update_s:>14.1f} {r.update_s:>9.2f} "
-              f"{r.steps_per_s:>10,.0f}", flush=True)
+              f"{r.steps_per_s:>10,.0f} {r.devices:>7}", flush=True)
     if args.json:
         write_results(args.json, results)
     return 0
