@@ -44,6 +44,12 @@ def test_train_reports_config_errors_naming_the_key(capsys, tmp_path, tiny_yaml)
     assert code == 2 and "not a run folder" in err
     code, _, err = run_cli(capsys, "train", str(tmp_path / "missing.yaml"))
     assert code == 2 and "cannot read the config" in err
+    # More devices than this machine has (the tests run with two): an error, and no run folder.
+    runs = tmp_path / "runs"
+    code, _, err = run_cli(capsys, "train", str(tiny_yaml), "learner.num_envs=8",
+                           "learner.num_devices=4", f"run.dir={runs}")
+    assert code == 2 and "learner.num_devices: 4 devices asked for, 2 available" in err
+    assert not runs.exists()
 
 
 def test_eval_reports_errors(capsys, tmp_path):

@@ -72,6 +72,16 @@ def learner_for(config: TrainConfig, env_config: EnvConfig | None = None) -> PPO
                         config.env.opponent)
 
 
+def check_devices(config: TrainConfig) -> None:
+    """ConfigError if this machine has fewer devices than `learner.num_devices` asks for."""
+    from ued.learners.ppo import local_devices
+
+    try:
+        local_devices(config.learner.num_devices)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+
+
 def new_run_dir(config: TrainConfig) -> Path:
     """A fresh folder `run.dir/<run name>-<timestamp>` (a suffix if that exists already)."""
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
@@ -185,9 +195,11 @@ def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = Non
             raise ConfigError("resume needs the run folder")
         run_dir = Path(run_dir)
         config = read_run_config(run_dir)
+        check_devices(config)
     else:
         if config is None:
             raise ConfigError("a new run needs a config")
+        check_devices(config)  # before a run folder exists
         run_dir = Path(run_dir) if run_dir is not None else new_run_dir(config)
         if (run_dir / CONFIG_FILE).exists():
             raise ConfigError(f"{run_dir} already holds a run; continue it with --resume "

@@ -448,14 +448,11 @@ class PPOLearner:
         `minibatches` (default: the config's) minibatches. Not `strict` (scoring batches of
         any size): at most `ppo.num_devices`, as many as divide the envs evenly. On CPU,
         `tabx` makes one device per core (tabx/_xla_flags.py)."""
-        available = jax.local_devices()
         if minibatches is None:
             minibatches = self.ppo.num_minibatches
         wanted = self.ppo.num_devices
+        available = local_devices(wanted if strict else 0)
         if wanted and strict:
-            if wanted > len(available):
-                raise ValueError(f"learner.num_devices: {wanted} devices asked for, "
-                                 f"{len(available)} available ({available[0].platform})")
             if num_envs % (wanted * minibatches):
                 raise ValueError(f"learner.num_devices: {num_envs} envs do not split into "
                                  f"{wanted} devices x {minibatches} minibatches")
@@ -610,6 +607,19 @@ class PPOLearner:
 _ENVS = "envs"  # the mesh axis data-parallel learners split their envs over
 
 
+def local_devices(wanted: int = 0) -> list[jax.Device]:
+    """This process's devices (of JAX's default backend); ValueError naming
+    `learner.num_devices` if there are fewer than `wanted`."""
+    available = jax.local_devices()
+    if wanted > len(available):
+        hint = ("; tabx makes one CPU device per core, XLA_FLAGS="
+                "--xla_force_host_platform_device_count=N asks for N"
+                if available[0].platform == "cpu" else "")
+        raise ValueError(f"learner.num_devices: {wanted} devices asked for, "
+                         f"{len(available)} available ({available[0].platform}){hint}")
+    return available
+
+
 def _on_devices(fn: Any, devices: tuple[jax.Device, ...], state: Any, levels: EnvParams,
                 key: jax.Array) -> Any:
     """`fn(state, levels, key)` with `state` and `key` replicated on `devices` and `levels`
@@ -652,4 +662,5 @@ def cached_learner(cls: type, env_config: EnvConfig, ppo: PPOConfig, team: str |
 
 __all__ = ["PPOLearner", "RolloutStats", "TrainState", "Transition", "cached_learner",
            "episode_metrics", "gae", "masked_logits", "masked_mean", "normalise",
-           "policy_terms", "ppo_policy_loss", "team_mean", "valid_count", "value_loss"]
+           "local_devices", "policy_terms", "ppo_policy_loss", "team_mean", "valid_count",
+           "value_loss"]
