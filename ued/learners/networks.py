@@ -135,10 +135,39 @@ def _row_mean(x: jax.Array) -> jax.Array:
 
 def layer_norm(p: Params, x: jax.Array) -> jax.Array:
     """LayerNorm over the last axis (epsilon 1e-6, learned scale and bias)."""
+    return _layer_norm(x, p["scale"], p["bias"])
+
+
+def _normalised(x: jax.Array) -> tuple[jax.Array, jax.Array]:
     mean = _row_mean(x)
     centred = x - mean
-    var = _row_mean(centred * centred)
-    return centred * jax.lax.rsqrt(var + LN_EPS) * p["scale"] + p["bias"]
+    rstd = jax.lax.rsqrt(_row_mean(centred * centred) + LN_EPS)
+    return centred * rstd, rstd
+
+
+@jax.custom_vjp
+def _layer_norm(x: jax.Array, scale: jax.Array, bias: jax.Array) -> jax.Array:
+    return _normalised(x)[0] * scale + bias
+
+
+def _layer_norm_fwd(x, scale, bias):
+    y, rstd = _normalised(x)
+    return y * scale + bias, (y, rstd, scale)
+
+
+def _layer_norm_bwd(res, g):
+    """dx = rstd (dy - mean(dy) - y mean(dy y)) with dy = g scale, the row means as
+    matrix-vector products: autodiff of the forward made two row reductions of the
+    broadcast statistics, each an unfused reduce-window and a reduce on XLA:CPU (IPPO updates
+    3-5 % faster this way, session 6)."""
+    y, rstd, scale = res
+    rows = tuple(range(g.ndim - 1))
+    dy = g * scale
+    dx = rstd * (dy - _row_mean(dy) - y * _row_mean(dy * y))
+    return dx, jnp.sum(g * y, rows), jnp.sum(g, rows)
+
+
+_layer_norm.defvjp(_layer_norm_fwd, _layer_norm_bwd)
 
 
 def encode(p: Params, x: jax.Array) -> jax.Array:
