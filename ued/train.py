@@ -195,11 +195,10 @@ def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = Non
             raise ConfigError("resume needs the run folder")
         run_dir = Path(run_dir)
         config = read_run_config(run_dir)
-        check_devices(config)
-    else:
-        if config is None:
-            raise ConfigError("a new run needs a config")
-        check_devices(config)  # before a run folder exists
+    elif config is None:
+        raise ConfigError("a new run needs a config")
+    check_devices(config)  # before a new run's folder exists
+    if not resume:
         run_dir = Path(run_dir) if run_dir is not None else new_run_dir(config)
         if (run_dir / CONFIG_FILE).exists():
             raise ConfigError(f"{run_dir} already holds a run; continue it with --resume "

@@ -495,7 +495,7 @@ class PPOLearner:
             by_env, by_time_env = P(_ENVS), P(None, _ENVS)
             out = jax.shard_map(
                 functools.partial(self._train, axis_name=_ENVS),
-                mesh=jax.sharding.Mesh(devices, (_ENVS,)),
+                mesh=_mesh(devices),
                 in_specs=(P(), P(), by_env, by_time_env, P()),
                 out_specs=(P(), P(), P(), by_time_env, by_time_env), check_vma=False,
             )(params, opt_state, levels, keys, k_train)
@@ -571,7 +571,7 @@ class PPOLearner:
         else:  # each device plays its share of the envs
             P = jax.sharding.PartitionSpec
             records, stats = jax.shard_map(
-                self._score_envs, mesh=jax.sharding.Mesh(devices, (_ENVS,)),
+                self._score_envs, mesh=_mesh(devices),
                 in_specs=(P(), P(_ENVS), P(None, _ENVS)),
                 out_specs=(P(None, _ENVS), P(None, _ENVS)), check_vma=False,
             )(params, levels, keys)
@@ -620,6 +620,12 @@ def local_devices(wanted: int = 0) -> list[jax.Device]:
     return available
 
 
+@functools.lru_cache(maxsize=8)
+def _mesh(devices: tuple[jax.Device, ...]) -> jax.sharding.Mesh:
+    """The one-axis mesh (`_ENVS`) over `devices`, built once per device set."""
+    return jax.sharding.Mesh(devices, (_ENVS,))
+
+
 def _on_devices(fn: Any, devices: tuple[jax.Device, ...], state: Any, levels: EnvParams,
                 key: jax.Array) -> Any:
     """`fn(state, levels, key)` with `state` and `key` replicated on `devices` and `levels`
@@ -627,7 +633,7 @@ def _on_devices(fn: Any, devices: tuple[jax.Device, ...], state: Any, levels: En
     arrays live). On one device, `fn` as it is."""
     if len(devices) == 1:
         return fn(state, levels, key)
-    mesh = jax.sharding.Mesh(devices, (_ENVS,))
+    mesh = _mesh(devices)
     replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
     by_env = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(_ENVS))
     out = fn(jax.device_put(state, replicated), jax.device_put(levels, by_env),
