@@ -1,10 +1,11 @@
-"""`tabx.jit_options`: which compiler options simulator programs get, that a program compiled
-with them computes exactly what plain `jax.jit` computes, and what the benchmark rollout
+"""`tabx.jit_options`: which compiler options simulator and learner programs get, that a
+program compiled with them computes what plain `jax.jit` computes, and what the benchmark rollout
 carries as its observation."""
 
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -35,6 +36,24 @@ def test_default_compiler_on_request_or_on_unmeasured_jaxlib(monkeypatch):
     monkeypatch.delenv("TABX_DEFAULT_COMPILER")
     monkeypatch.setattr("tabx._xla_flags._KNOWN_JAXLIB_PREFIXES", ("99.",))
     assert jit_options.simulator_compiler_options() is None
+
+
+def test_bfloat16_learner_programs_get_ynnpack_products_on_cpu(monkeypatch):
+    assert jit_options.learner_compiler_options("bfloat16") == {
+        "xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT"}
+    assert jit_options.learner_compiler_options("float32") is None
+    x = jax.random.normal(jax.random.key(0), (48, 128)).astype(jnp.bfloat16)
+    w = jax.random.normal(jax.random.key(1), (128, 384)).astype(jnp.bfloat16)
+
+    def product(x, w):
+        return jnp.dot(x, w, preferred_element_type=jnp.float32)
+
+    tuned, plain = jit_options.learner_jit(product, "bfloat16"), jax.jit(product)
+    assert "__ynn_fusion" in tuned.lower(x, w).compile().as_text()
+    assert "__ynn_fusion" not in plain.lower(x, w).compile().as_text()  # off elsewhere
+    np.testing.assert_allclose(tuned(x, w), plain(x, w), rtol=1e-5, atol=1e-4)
+    monkeypatch.setenv("TABX_DEFAULT_COMPILER", "1")
+    assert jit_options.learner_compiler_options("bfloat16") is None
 
 
 def test_simulator_jit_computes_what_plain_jit_computes(levels, monkeypatch):

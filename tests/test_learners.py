@@ -192,6 +192,67 @@ def test_trunk_sequence_and_its_gradients_match_a_plain_scan(monkeypatch):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5)
 
 
+def _rounded(a: jax.Array) -> np.ndarray:
+    return np.asarray(a.astype(jnp.bfloat16).astype(jnp.float32), np.float64)
+
+
+@pytest.mark.parametrize("transposed", [True, False])
+def test_bfloat16_products_round_their_inputs_and_accumulate_in_float32(transposed):
+    """learner.matmul_dtype=bfloat16: the forward product and the input gradient take
+    bfloat16-rounded operands and sum in float32; the weight gradient is the float32 one."""
+    x = jax.random.normal(jax.random.key(0), (5, 16))
+    w = jax.random.normal(jax.random.key(1), (16, 8))
+    g = jax.random.normal(jax.random.key(2), (5, 8))
+    w_t = w.T.astype(jnp.bfloat16) if transposed else None
+    y, vjp = jax.vjp(lambda x, w: nw.linear(x, w, w_t, jnp.bfloat16), x, w)
+    dx, dw = vjp(g)
+    assert y.dtype == dx.dtype == dw.dtype == jnp.float32
+    np.testing.assert_allclose(y, _rounded(x) @ _rounded(w), rtol=1e-5, atol=1e-5)
+    assert np.abs(np.asarray(y) - np.asarray(x, np.float64) @ np.asarray(w)).max() > 1e-3
+    np.testing.assert_allclose(dx, _rounded(g) @ _rounded(w).T, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(dw, np.asarray(x, np.float64).T @ np.asarray(g), rtol=1e-5,
+                               atol=1e-5)
+
+
+def test_float32_products_are_exact_with_or_without_transposes():
+    x = jax.random.normal(jax.random.key(0), (5, 16))
+    w = jax.random.normal(jax.random.key(1), (16, 8))
+    plain = jax.jacrev(lambda x, w: x @ w, (0, 1))(x, w)
+    ours = jax.jacrev(lambda x, w: nw.linear(x, w, w.T), (0, 1))(x, w)
+    np.testing.assert_allclose(nw.linear(x, w, w.T), x @ w, rtol=1e-6, atol=1e-6)
+    for a, b in zip(plain, ours, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-6)
+
+
+def test_bfloat16_training_sequences_replay_the_bfloat16_steps_and_track_float32():
+    """The training pass (`sequence`) computes what the rollout's `step` computed with the
+    same matmul dtype (PPO's first ratios are 1), and bfloat16 stays close to float32."""
+    p = nw.trunk_init(jax.random.key(0), 10, 16, (0.01,) * 8 + (1.0,))
+    x = jax.random.normal(jax.random.key(1), (12, 5, 10))
+    starts = jnp.zeros((12, 5), bool)
+    h0 = jnp.zeros((5, 16))
+
+    def stepped(dtype):
+        return jax.lax.scan(lambda h, x_t: nw.step(p, x_t, h, dtype), h0, x)[1]
+
+    low = jax.jit(nw.sequence, static_argnums=4)(p, x, starts, h0, jnp.bfloat16)
+    np.testing.assert_allclose(low, jax.jit(stepped, static_argnums=0)(jnp.bfloat16),
+                               rtol=1e-5, atol=1e-6)
+    full = jax.jit(nw.sequence)(p, x, starts, h0)
+    assert not np.allclose(low, full, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(low, full, rtol=0.05, atol=0.02)
+
+
+@pytest.mark.parametrize("dtype", ["bfloat16", "float32"])
+def test_the_update_program_multiplies_in_the_configured_matmul_dtype(dtype):
+    ppo = PPOConfig(num_envs=4, num_steps=8, hidden_dim=16, num_minibatches=2,
+                    matmul_dtype=dtype)
+    learner = make_learner("ippo", ENV_CONFIG, ppo, "ally", "random", cached=False)
+    state = learner.init(jax.random.key(0))
+    text = learner._update_jit.lower(state, tiny_levels(), jax.random.key(1)).as_text()
+    assert ("bf16" in text) == (dtype == "bfloat16")
+
+
 @settings(max_examples=25, deadline=None)
 @given(shift=st.floats(-100.0, 100.0), spread=st.floats(1e-2, 1e2), seed=st.integers(0, 2**16))
 def test_layer_norm_matches_float64_and_flax(shift, spread, seed):
@@ -397,6 +458,7 @@ def test_config_defaults_are_the_papers():
     ({"learner": {"num_envs": "many"}}, "learner.num_envs"),
     ({"learner": {"num_envs": 10, "num_minibatches": 4}}, "learner.num_minibatches"),
     ({"learner": {"num_devices": -1}}, "learner.num_devices"),
+    ({"learner": {"matmul_dtype": "float16"}}, "learner.matmul_dtype"),
     ({"learner": {"num_envs": 8, "num_minibatches": 2, "num_devices": 3}},
      "learner.num_devices"),
     ({"env": {"team": "blue"}}, "env.team"),

@@ -121,8 +121,11 @@ def test_bench_train_parser():
     args = parser.parse_args(["train", "--algorithms", "ippo", "--num-envs", "8",
                               "--num-steps", "4", "--updates", "1"])
     assert args.algorithms == ["ippo"] and args.num_envs == 8 and callable(args.func)
-    with pytest.raises(SystemExit):
-        parser.parse_args(["train", "--algorithms", "qmix"])
+    assert args.matmul_dtype is None  # the config default
+    assert parser.parse_args(["train", "--matmul-dtype", "float32"]).matmul_dtype == "float32"
+    for bad in (["--algorithms", "qmix"], ["--matmul-dtype", "float16"]):
+        with pytest.raises(SystemExit):
+            parser.parse_args(["train", *bad])
 
 
 BENCH_WITH_A_CACHE = """
@@ -132,8 +135,9 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 (jnp.ones(3) + 1).block_until_ready()  # the process's first compile: JAX now uses the cache
 from ued.learners.bench import run_train_bench
 try:
-    r = run_train_bench("ippo", num_envs=4, num_steps=4, updates=1)
-    print("measured", r.first_update_s > 0 and r.update_s > 0 and r.steps_per_s > 0)
+    r = run_train_bench("ippo", num_envs=4, num_steps=4, updates=1, matmul_dtype="float32")
+    print("measured", r.first_update_s > 0 and r.update_s > 0 and r.steps_per_s > 0
+          and r.matmul_dtype == "float32")
 except RuntimeError as err:
     print("refused:", err)
 """

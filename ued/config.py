@@ -36,6 +36,7 @@ from ued.errors import check as _check
 from ued.levels import LevelSpace
 
 ALGORITHMS = ("mappo", "ippo")
+MATMUL_DTYPES = ("bfloat16", "float32")  # learner.matmul_dtype
 TEAMS = ("ally", "enemy")
 
 
@@ -88,6 +89,10 @@ class PPOConfig:
     # Envs split over this many local devices (data parallel; one gradient, summed across
     # them). 0: as many as divide the envs evenly (ued/learners/ppo.py `learner_devices`).
     num_devices: int = 0
+    # The networks' matrix products: inputs rounded to this type, float32 accumulation
+    # (bfloat16 = JAX's default precision on TPUs; about 1.3x faster updates on an AMX CPU);
+    # "float32" for full precision. Parameters, gradients and the optimiser stay float32.
+    matmul_dtype: str = "bfloat16"
 
     @property
     def steps_per_update(self) -> int:
@@ -111,6 +116,8 @@ class PPOConfig:
                    f"{prefix}.num_devices",
                    f"num_envs ({self.num_envs}) must split into num_devices x num_minibatches "
                    f"({self.num_devices} x {self.num_minibatches}) equal parts")
+        _check(self.matmul_dtype in MATMUL_DTYPES, f"{prefix}.matmul_dtype",
+               f"must be one of {', '.join(MATMUL_DTYPES)}, got {self.matmul_dtype!r}")
         _check(self.lr > 0, f"{prefix}.lr", f"must be > 0, got {self.lr}")
         for name in ("gamma", "gae_lambda"):
             value = getattr(self, name)

@@ -22,6 +22,7 @@ shares `wilson` and `mean_ci` with this module.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +35,7 @@ import numpy as np
 from tabx import constants as C
 from tabx.controllers import Controller, controlled_actions, with_tiers
 from tabx.env import TabxEnv
+from tabx.jit_options import learner_jit
 from tabx.params import EnvConfig, EnvParams, repeat_level
 from ued.checkpoint import Checkpoints
 from ued.config import ConfigError, TrainConfig
@@ -162,7 +164,11 @@ def play(env_config: EnvConfig, level: EnvParams, ally: Side, enemy: Side, episo
     params = [p.params if p is not None else None for p in policies]
     levels = jax.tree.map(jnp.asarray, repeat_level(level, episodes))
 
-    @jax.jit
+    # Compiled for the networks' matmul dtype (bfloat16 if either policy multiplies in it).
+    dtypes = {p.learner.ppo.matmul_dtype for p in policies if p is not None}
+    matmul_dtype = "bfloat16" if "bfloat16" in dtypes else "float32"
+
+    @functools.partial(learner_jit, matmul_dtype=matmul_dtype)
     def run(params, levels, key):
         _, states = jax.vmap(env.reset)(jax.random.split(key, episodes), levels)
         hidden = [p.learner.initial_hidden(episodes) if p is not None else None

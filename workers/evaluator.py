@@ -145,7 +145,7 @@ def compiled_runner(learner: PPOLearner, used: tuple[str, ...], greedy: bool):
             body, init, jax.random.split(k_run, config.max_steps))
         return states.won[:, team], returns, length
 
-    return jax.jit(run)
+    return learner.jit(run)
 
 
 class Evaluator:

@@ -8,12 +8,14 @@ steady-state throughput is env steps per update / median seconds per update. A f
 built for each algorithm (no compiled function is reused; a persistent compilation cache, if
 the user configured one, is switched off for the run), and the level batch is a jit argument,
 as in training. `--reference-like` trains with the reference's structure instead (see
-`reference_like`), to compare on the same machine at the same moment.
+`reference_like`), to compare on the same machine at the same moment. `--matmul-dtype` sets
+`learner.matmul_dtype` (default: the config default, bfloat16).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import statistics
 import time
 from dataclasses import dataclass
@@ -21,6 +23,8 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+
+from ued.config import MATMUL_DTYPES
 
 
 @dataclass
@@ -36,6 +40,7 @@ class TrainBenchResult:
     steps_per_s: float
     updates: int
     devices: int = 1  # the envs were split over this many devices (data parallel)
+    matmul_dtype: str = "float32"  # the networks' matmul inputs (learner.matmul_dtype)
 
 
 def reference_like(learner: Any) -> Any:
@@ -49,7 +54,7 @@ def reference_like(learner: Any) -> Any:
     def plain(p, x, starts, h0):
         def body(h, inputs):
             x_t, start_t = inputs
-            return nw.step(p, x_t, jnp.where(start_t[:, None], 0.0, h))
+            return nw.step(p, x_t, jnp.where(start_t[:, None], 0.0, h), learner.matmul_dtype)
 
         return jax.lax.scan(body, h0, (x, starts))[1]
 
@@ -76,7 +81,8 @@ def reference_like(learner: Any) -> Any:
 def run_train_bench(algorithm: str, scenario: str = "crossfire",
                     opponent: str = "heuristic:medium", num_envs: int = 128,
                     num_steps: int = 512, updates: int = 3,
-                    variant: str = "ours") -> TrainBenchResult:
+                    variant: str = "ours", matmul_dtype: str | None = None
+                    ) -> TrainBenchResult:
     # A cold compile, always: JAX decides once per process, at its first compilation, whether
     # to use a persistent cache, so switch it off before anything here compiles (and check
     # below that the update really compiled).
@@ -84,13 +90,14 @@ def run_train_bench(algorithm: str, scenario: str = "crossfire",
     jax.config.update("jax_enable_compilation_cache", False)
     try:
         return _run_train_bench(algorithm, scenario, opponent, num_envs, num_steps, updates,
-                                variant)
+                                variant, matmul_dtype)
     finally:
         jax.config.update("jax_enable_compilation_cache", cache)
 
 
 def _run_train_bench(algorithm: str, scenario: str, opponent: str, num_envs: int,
-                     num_steps: int, updates: int, variant: str) -> TrainBenchResult:
+                     num_steps: int, updates: int, variant: str, matmul_dtype: str | None
+                     ) -> TrainBenchResult:
     from tabx.compile_counter import CompileCounter
     from tabx.params import repeat_level
     from tabx.scenarios import config_for, load_named
@@ -101,6 +108,8 @@ def _run_train_bench(algorithm: str, scenario: str, opponent: str, num_envs: int
     env_config = config_for([level_scenario])
     levels = jax.tree.map(jnp.array, repeat_level(level_scenario.to_level(env_config), num_envs))
     ppo = PPOConfig(num_envs=num_envs, num_steps=num_steps)
+    if matmul_dtype is not None:
+        ppo = dataclasses.replace(ppo, matmul_dtype=matmul_dtype)
     learner = make_learner(algorithm, env_config, ppo, "ally", opponent, cached=False)
     if variant == "reference-like":
         reference_like(learner)
@@ -127,7 +136,7 @@ def _run_train_bench(algorithm: str, scenario: str, opponent: str, num_envs: int
     median = statistics.median(times) if times else float("nan")
     return TrainBenchResult(algorithm, variant, scenario, opponent, num_envs, num_steps, first,
                             median, num_envs * num_steps / median, updates,
-                            len(learner.learner_devices(num_envs)))
+                            len(learner.learner_devices(num_envs)), ppo.matmul_dtype)
 
 
 def bench_train(args: argparse.Namespace) -> int:
@@ -139,14 +148,14 @@ def bench_train(args: argparse.Namespace) -> int:
           f"{'; reference-like training structure' if args.reference_like else ''}",
           flush=True)
     print(f"{'algorithm':>9} {'first update s':>14} {'update s':>9} {'steps/s':>10} "
-          f"{'devices':>7}", flush=True)
+          f"{'devices':>7} {'matmuls':>8}", flush=True)
     results = []
     for algorithm in args.algorithms:
         r = run_train_bench(algorithm, args.scenario, args.opponent, args.num_envs,
-                            args.num_steps, args.updates, variant)
+                            args.num_steps, args.updates, variant, args.matmul_dtype)
         results.append(r)
         print(f"{algorithm:>9} {r.first_update_s:>14.1f} {r.update_s:>9.2f} "
-              f"{r.steps_per_s:>10,.0f} {r.devices:>7}", flush=True)
+              f"{r.steps_per_s:>10,.0f} {r.devices:>7} {r.matmul_dtype:>8}", flush=True)
     if args.json:
         write_results(args.json, results)
     return 0
@@ -189,6 +198,9 @@ def add_train_bench(which: argparse._SubParsersAction) -> None:
     p.add_argument("--reference-like", action="store_true",
                    help="train with the reference's structure instead (plain autodiff scans, "
                         "MAPPO critic per agent), for comparison")
+    p.add_argument("--matmul-dtype", choices=MATMUL_DTYPES, default=None,
+                   help="the networks' matmul inputs (learner.matmul_dtype; default: the "
+                        "config default, bfloat16)")
     p.add_argument("--json", help="also write results as JSON lines to this file")
     p.set_defaults(func=bench_train)
 

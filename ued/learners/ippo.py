@@ -33,18 +33,19 @@ class IPPO(PPOLearner):
         return jnp.zeros((num_envs, self.num_agents, self.ppo.hidden_dim), jnp.float32)
 
     def act_step(self, params, x, world, hidden):
-        hidden, out = nw.step(params["net"], x, hidden)
+        hidden, out = nw.step(params["net"], x, hidden, self.matmul_dtype)
         return hidden, out[..., :C.NUM_ACTIONS], out[..., C.NUM_ACTIONS]
 
     def policy_step(self, params, x, hidden):
-        hidden, out = nw.step(params["net"], x, hidden)
+        hidden, out = nw.step(params["net"], x, hidden, self.matmul_dtype)
         return hidden, out[..., :C.NUM_ACTIONS]
 
     def evaluate_sequence(self, params, x, world, starts):
         steps, envs, agents = x.shape[:3]
         flat = x.reshape(steps, envs * agents, x.shape[-1])
         h0 = jnp.zeros((envs * agents, self.ppo.hidden_dim), jnp.float32)
-        out = nw.sequence(params["net"], flat, jnp.repeat(starts, agents, axis=1), h0)
+        out = nw.sequence(params["net"], flat, jnp.repeat(starts, agents, axis=1), h0,
+                          self.matmul_dtype)
         out = out.reshape(steps, envs, agents, -1)
         return out[..., :C.NUM_ACTIONS], out[..., C.NUM_ACTIONS]
 

@@ -46,13 +46,13 @@ class MAPPO(PPOLearner):
 
     def act_step(self, params, x, world, hidden):
         h_actor, h_critic = hidden
-        h_actor, logits = nw.step(params["actor"], x, h_actor)
-        h_critic, value = nw.step(params["critic"], world, h_critic)
+        h_actor, logits = nw.step(params["actor"], x, h_actor, self.matmul_dtype)
+        h_critic, value = nw.step(params["critic"], world, h_critic, self.matmul_dtype)
         return (h_actor, h_critic), logits, value[..., 0]
 
     def policy_step(self, params, x, hidden):
         h_actor, h_critic = hidden
-        h_actor, logits = nw.step(params["actor"], x, h_actor)
+        h_actor, logits = nw.step(params["actor"], x, h_actor, self.matmul_dtype)
         return (h_actor, h_critic), logits
 
     def evaluate_sequence(self, params, x, world, starts):
@@ -63,7 +63,7 @@ class MAPPO(PPOLearner):
         logits, values = nw.sequences(
             (params["actor"], params["critic"]), (flat, world), (agent_starts, starts),
             (jnp.zeros((envs * agents, hidden), jnp.float32),
-             jnp.zeros((envs, hidden), jnp.float32)))
+             jnp.zeros((envs, hidden), jnp.float32)), self.matmul_dtype)
         return logits.reshape(steps, envs, agents, -1), values[..., 0]
 
 

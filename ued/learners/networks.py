@@ -14,10 +14,19 @@ The GRU is flax's `GRUCell` equation with the three gates fused into one matmul 
 `step` runs one time step (the rollout); `sequence` runs whole sequences for training, one
 rematerialised scan step per time step (see its docstring), resetting the hidden state to zeros
 where `starts` is True (the observation opens an episode).
+
+Every function takes the matmul input `dtype` (float32 or bfloat16; the learner's
+`learner.matmul_dtype`). With bfloat16 the layers' matrix products round their inputs (the
+activations, the weights, and in the backward pass the output gradients) to bfloat16 and
+accumulate in float32, as JAX's default precision does on TPUs; everything else (LayerNorm,
+the GRU gates, weight gradients, the parameters and the optimiser) stays float32. On a CPU with
+AMX, XLA:CPU's YNNPACK dot kernels run these products about 3x faster than float32 ones
+(`learner_jit`, docs/learners.md "Matmul precision").
 """
 
 from __future__ import annotations
 
+import functools
 import math
 
 import jax
@@ -86,42 +95,56 @@ def trunk_init(key: jax.Array, n_in: int, hidden: int, head_scales: tuple[float,
 # --- forward pieces --------------------------------------------------------------------------
 
 
-@jax.custom_vjp
-def _matmul_t(x: jax.Array, w: jax.Array, w_t: jax.Array) -> jax.Array:
-    return x @ w
+def _product(a: jax.Array, b: jax.Array, dtype: jnp.dtype) -> jax.Array:
+    """a @ b with both inputs rounded to `dtype`, accumulated and returned in float32."""
+    return jnp.dot(a.astype(dtype), b.astype(dtype), preferred_element_type=jnp.float32)
 
 
-def _matmul_t_fwd(x, w, w_t):
-    return x @ w, (x, w_t)
+@functools.partial(jax.custom_vjp, nondiff_argnums=(3,))
+def _matmul(x: jax.Array, w: jax.Array, w_t: jax.Array | None, dtype: jnp.dtype
+            ) -> jax.Array:
+    return _product(x, w, dtype)
 
 
-def _matmul_t_bwd(res, g):
-    x, w_t = res
-    return g @ w_t, jnp.einsum("...i,...o->io", x, g), None
+def _matmul_fwd(x, w, w_t, dtype):
+    return _product(x, w, dtype), (x, w, w_t)
 
 
-_matmul_t.defvjp(_matmul_t_fwd, _matmul_t_bwd)
+def _matmul_bwd(dtype, res, g):
+    x, w, w_t = res
+    dx = _product(g, jnp.transpose(w) if w_t is None else w_t, dtype)
+    # The weight gradient from float32 inputs: it sums over every row of the minibatch, and
+    # XLA:CPU runs this transposed-operand product no faster in bfloat16.
+    dw = jnp.einsum("...i,...o->io", x, g)
+    return dx, dw, None
 
 
-def linear(x: jax.Array, w: jax.Array, w_t: jax.Array | None = None) -> jax.Array:
-    """x @ w. With `w_t` (w transposed, laid out row-major once per gradient step by
-    `with_transposes`), the input gradient is g @ w_t rather than a product against w's
-    rows: XLA:CPU runs that transposed-operand product 1.3-3x slower on small minibatches."""
-    return x @ w if w_t is None else _matmul_t(x, w, w_t)
+_matmul.defvjp(_matmul_fwd, _matmul_bwd)
 
 
-def with_transposes(p: Params) -> Params:
-    """`p` with row-major transposes (no gradient) of the weights whose input gradient the
-    backward pass needs: the GRU's and the layers after it (the embedding's input, the
-    observation, needs none)."""
-    t = lambda w: jax.lax.stop_gradient(jnp.transpose(w))
+def linear(x: jax.Array, w: jax.Array, w_t: jax.Array | None = None,
+           dtype: jnp.dtype = jnp.float32) -> jax.Array:
+    """x @ w, its inputs rounded to the matmul `dtype` (float32: exactly x @ w). With `w_t`
+    (w transposed, laid out row-major once per gradient step by `with_transposes`), the input
+    gradient is g @ w_t rather than a product against w's rows: XLA:CPU runs that
+    transposed-operand product 1.3-3x slower on small minibatches."""
+    if w_t is None and jnp.dtype(dtype) == jnp.float32:
+        return x @ w
+    return _matmul(x, w, w_t, jnp.dtype(dtype))
+
+
+def with_transposes(p: Params, dtype: jnp.dtype = jnp.float32) -> Params:
+    """`p` with row-major transposes (no gradient, in the matmul `dtype`) of the weights whose
+    input gradient the backward pass needs: the GRU's and the layers after it (the
+    embedding's input, the observation, needs none)."""
+    t = lambda w: jax.lax.stop_gradient(jnp.transpose(w)).astype(dtype)
     return {**p, "gru": {**p["gru"], "wi_t": t(p["gru"]["wi"]), "wh_t": t(p["gru"]["wh"])},
             "hidden": {**p["hidden"], "w_t": t(p["hidden"]["w"])},
             "out": {**p["out"], "w_t": t(p["out"]["w"])}}
 
 
-def dense(p: Params, x: jax.Array) -> jax.Array:
-    return linear(x, p["w"], p.get("w_t")) + p["b"]
+def dense(p: Params, x: jax.Array, dtype: jnp.dtype = jnp.float32) -> jax.Array:
+    return linear(x, p["w"], p.get("w_t"), dtype) + p["b"]
 
 
 def _row_mean(x: jax.Array) -> jax.Array:
@@ -170,16 +193,17 @@ def _layer_norm_bwd(res, g):
 _layer_norm.defvjp(_layer_norm_fwd, _layer_norm_bwd)
 
 
-def encode(p: Params, x: jax.Array) -> jax.Array:
+def encode(p: Params, x: jax.Array, dtype: jnp.dtype = jnp.float32) -> jax.Array:
     """(..., n_in) -> (..., 3H): embedding and the GRU's input projection (no recurrence)."""
-    e = jax.nn.relu(layer_norm(p["ln_embed"], dense(p["embed"], x)))
-    gi = linear(e, p["gru"]["wi"], p["gru"].get("wi_t")) + p["gru"]["bi"]
+    e = jax.nn.relu(layer_norm(p["ln_embed"], dense(p["embed"], x, dtype)))
+    gi = linear(e, p["gru"]["wi"], p["gru"].get("wi_t"), dtype) + p["gru"]["bi"]
     return checkpoint_name(gi, "gru_gi")
 
 
-def decode(p: Params, h: jax.Array) -> jax.Array:
+def decode(p: Params, h: jax.Array, dtype: jnp.dtype = jnp.float32) -> jax.Array:
     """(..., H) GRU output -> (..., out): the layers after the GRU."""
-    return dense(p["out"], jax.nn.relu(layer_norm(p["ln_hidden"], dense(p["hidden"], h))))
+    hidden = jax.nn.relu(layer_norm(p["ln_hidden"], dense(p["hidden"], h, dtype)))
+    return dense(p["out"], hidden, dtype)
 
 
 def _gates(gi: jax.Array, gh: jax.Array, h: jax.Array
@@ -195,24 +219,26 @@ def _gates(gi: jax.Array, gh: jax.Array, h: jax.Array
     return (1.0 - z) * n + z * h, r, z, n
 
 
-def gru_cell(p: Params, gi: jax.Array, h: jax.Array) -> jax.Array:
+def gru_cell(p: Params, gi: jax.Array, h: jax.Array, dtype: jnp.dtype = jnp.float32
+             ) -> jax.Array:
     """One GRU step from the encoded input `gi` (..., 3H) and hidden `h` (..., H)."""
-    gh = checkpoint_name(linear(h, p["wh"], p.get("wh_t")) + p["bh"], "gru_gh")
+    gh = checkpoint_name(linear(h, p["wh"], p.get("wh_t"), dtype) + p["bh"], "gru_gh")
     return _gates(gi, gh, h)[0]
 
 
-def step(p: Params, x: jax.Array, h: jax.Array) -> tuple[jax.Array, jax.Array]:
+def step(p: Params, x: jax.Array, h: jax.Array, dtype: jnp.dtype = jnp.float32
+         ) -> tuple[jax.Array, jax.Array]:
     """One time step of the whole network: (new hidden, output). Used by the rollout."""
-    h = gru_cell(p["gru"], encode(p, x), h)
-    return h, decode(p, h)
+    h = gru_cell(p["gru"], encode(p, x, dtype), h, dtype)
+    return h, decode(p, h, dtype)
 
 
 # --- whole sequences (training) --------------------------------------------------------------
 
 
 def sequences(params: tuple[Params, ...], xs: tuple[jax.Array, ...],
-              starts: tuple[jax.Array, ...], h0s: tuple[jax.Array, ...]
-              ) -> tuple[jax.Array, ...]:
+              starts: tuple[jax.Array, ...], h0s: tuple[jax.Array, ...],
+              dtype: jnp.dtype = jnp.float32) -> tuple[jax.Array, ...]:
     """Several networks over sequences of the same length in one scan: outputs (T, B_i, out_i)
     of network i over inputs `xs[i]` (T, B_i, n_in_i) from hidden `h0s[i]` (B_i, H_i),
     resetting its hidden state to zeros before every step where `starts[i]` (T, B_i).
@@ -225,13 +251,14 @@ def sequences(params: tuple[Params, ...], xs: tuple[jax.Array, ...],
     slower, saving none 3-5 % slower than saving the two projections, measured on two
     devices); running the networks of MAPPO (actor and critic) in the same step halves the
     loop iterations and lets their independent matmuls run side by side. The backward pass
-    multiplies by weights transposed once per call (`with_transposes`)."""
-    params = tuple(with_transposes(p) for p in params)
+    multiplies by weights transposed once per call (`with_transposes`). `dtype`: the matmul
+    inputs' (see the module doc)."""
+    params = tuple(with_transposes(p, dtype) for p in params)
 
     def body(hs, inputs):
         outs, new_hs = [], []
         for p, h, (x_t, start_t) in zip(params, hs, inputs, strict=True):
-            h, out = step(p, x_t, jnp.where(start_t[:, None], 0.0, h))
+            h, out = step(p, x_t, jnp.where(start_t[:, None], 0.0, h), dtype)
             new_hs.append(h)
             outs.append(out)
         return tuple(new_hs), tuple(outs)
@@ -244,10 +271,11 @@ def sequences(params: tuple[Params, ...], xs: tuple[jax.Array, ...],
                         unroll=unroll)[1]
 
 
-def sequence(p: Params, x: jax.Array, starts: jax.Array, h0: jax.Array) -> jax.Array:
+def sequence(p: Params, x: jax.Array, starts: jax.Array, h0: jax.Array,
+             dtype: jnp.dtype = jnp.float32) -> jax.Array:
     """Outputs (T, B, out) of one network over inputs `x` (T, B, n_in) from hidden `h0`
     (B, H), resetting the hidden state where `starts` (T, B); see `sequences`."""
-    return sequences((p,), (x,), (starts,), (h0,))[0]
+    return sequences((p,), (x,), (starts,), (h0,), dtype)[0]
 
 
 __all__ = ["decode", "encode", "gru_cell", "sequence", "sequences", "step", "trunk_init"]

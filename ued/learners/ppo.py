@@ -47,6 +47,7 @@ from flax import struct
 from tabx import constants as C
 from tabx.controllers import Controller, controlled_actions, with_tiers
 from tabx.env import TabxEnv
+from tabx.jit_options import learner_jit
 from tabx.params import EnvConfig, EnvParams
 from tabx.state import EnvState
 from ued.config import PPOConfig
@@ -230,10 +231,16 @@ class PPOLearner:
         self.num_agents = self.slots.stop - self.slots.start
         self.obs_dim = env_config.obs_size + self.num_agents  # + one-hot agent id
         self.state_dim = env_config.state_size
+        self.matmul_dtype = jnp.dtype(self.ppo.matmul_dtype)  # the networks' (networks.py)
         self.optimizer = self._make_optimizer()
-        self._update_jit = jax.jit(self._update, donate_argnums=0)
+        self._update_jit = self.jit(self._update, donate_argnums=0)
         self._score_jit = None
         self._init_jit = None
+
+    def jit(self, fn: Any, **jit_kwargs: Any) -> Any:
+        """`jax.jit` with the compiler options for this learner's networks
+        (`tabx.jit_options.learner_jit`): use it for programs that run them."""
+        return learner_jit(fn, self.ppo.matmul_dtype, **jit_kwargs)
 
     # --- to be provided by MAPPO / IPPO ------------------------------------------------------
 
@@ -296,7 +303,7 @@ class PPOLearner:
         """A fresh train state. Jitted: one compilation (1.8 s for MAPPO, and cacheable)
         instead of some sixty small ones op by op (2.9 s); the same values bit for bit."""
         if self._init_jit is None:
-            self._init_jit = jax.jit(self._init)
+            self._init_jit = self.jit(self._init)
         return self._init_jit(key)
 
     def _init(self, key: jax.Array) -> TrainState:
@@ -597,7 +604,7 @@ class PPOLearner:
         if num_steps < 1:
             raise ValueError(f"num_steps must be >= 1, got {num_steps}")
         if self._score_jit is None:
-            self._score_jit = jax.jit(self._score, static_argnums=3)
+            self._score_jit = self.jit(self._score, static_argnums=3)
         devices = self.learner_devices(levels.reward_mode.shape[0], minibatches=1,
                                        strict=False)
         return _on_devices(lambda p, lv, k: self._score_jit(p, lv, k, num_steps), devices,
