@@ -112,6 +112,20 @@ def test_policy_against_policy(capsys, tmp_path, tiny_yaml):
     assert code == 2 and "trained as the enemy team" in err
 
 
+def test_run_folders_from_before_matmul_dtype_keep_float32(tmp_path):
+    """A resolved config without `learner.matmul_dtype` (written before the field existed)
+    resumes and evaluates in float32, as it trained; a current one in its own dtype."""
+    from ued.train import read_run_config
+
+    text = tiny_config().to_yaml()
+    assert "matmul_dtype: bfloat16" in text
+    (tmp_path / CONFIG_FILE).write_text(text)
+    assert read_run_config(tmp_path).learner.matmul_dtype == "bfloat16"
+    old = "\n".join(line for line in text.splitlines() if "matmul_dtype" not in line)
+    (tmp_path / CONFIG_FILE).write_text(old)
+    assert read_run_config(tmp_path).learner.matmul_dtype == "float32"
+
+
 def test_bench_train_parser():
     from ued.learners.bench import add_train_bench
 
