@@ -12,18 +12,10 @@
 See docs/level_buffer.md for the semantics, the file format and the `tabx buffer` CLI.
 """
 
-from level_buffer.buffer import (
-    DUPLICATE,
-    INSERTED,
-    REJECTED,
-    SLOT_FIELDS,
-    BufferState,
-    InsertResult,
-    LevelBuffer,
-    Replay,
-)
+from level_buffer.buffer import DUPLICATE, INSERTED, REJECTED, InsertResult, LevelBuffer, Replay
 from level_buffer.config import BufferConfig, Source
 from level_buffer.fileformat import FORMAT_VERSION, BufferFileError
+from level_buffer.state import SLOT_FIELDS, BufferState
 from level_buffer.tree import LevelSpec
 
 __all__ = [

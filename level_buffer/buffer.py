@@ -33,22 +33,9 @@ import numpy as np
 from level_buffer import weights as W
 from level_buffer.config import BufferConfig, Source
 from level_buffer.dedup import DuplicateIndex
+from level_buffer.fileformat import BufferFileError, decode, encode, make_rng
+from level_buffer.state import SLOT_FIELDS, STAT_NAMES, BufferState
 from level_buffer.tree import LevelSpec, named_leaves
-
-# Per-slot fields: dtype and the value of an unfilled slot.
-SLOT_FIELDS: dict[str, tuple[np.dtype, Any]] = {
-    "score": (np.dtype(np.float64), -np.inf),
-    "timestamp": (np.dtype(np.int64), 0),
-    "max_return": (np.dtype(np.float64), -np.inf),
-    "replay_count": (np.dtype(np.int64), 0),
-    "source": (np.dtype(np.int8), int(Source.RANDOM)),
-    "parent_id": (np.dtype(np.int64), -1),
-    "level_id": (np.dtype(np.int64), -1),
-    "policy_version": (np.dtype(np.int64), -1),
-    "depth": (np.dtype(np.int64), 0),
-}
-STAT_NAMES = ("insert_attempts", "inserted", "rejected", "duplicates", "evicted", "sampled",
-              "updated")
 
 REJECTED, INSERTED, DUPLICATE = 0, 1, 2  # InsertResult.status
 
@@ -73,21 +60,6 @@ class Replay(NamedTuple):
     scores: np.ndarray  # float64 (n,) scores before replay
     max_returns: np.ndarray  # float64 (n,) best return seen so far (MaxMC's R_max)
     depths: np.ndarray  # int64 (n,) lineage depth (a mutation's child has depth + 1)
-
-
-@dataclasses.dataclass
-class BufferState:
-    """Everything a buffer file holds; arrays cover the filled slots only."""
-
-    spec: LevelSpec
-    config: BufferConfig
-    size: int
-    clock: int
-    next_id: int
-    stats: dict[str, int]
-    rng_state: dict[str, Any]
-    levels: list[np.ndarray]
-    slots: dict[str, np.ndarray]
 
 
 @lru_cache(maxsize=16)
@@ -464,8 +436,6 @@ class LevelBuffer:
     @classmethod
     def from_state(cls, state: BufferState) -> LevelBuffer:
         """A buffer from a (validated) snapshot; see level_buffer.fileformat for validation."""
-        from level_buffer.fileformat import make_rng
-
         buf = cls.__new__(cls)
         buf._setup(state.spec, state.config, make_rng(state.rng_state))
         n = state.size
@@ -480,15 +450,11 @@ class LevelBuffer:
         return buf
 
     def to_bytes(self) -> bytes:
-        from level_buffer.fileformat import encode
-
         return encode(self.state())
 
     @classmethod
     def from_bytes(cls, data: bytes, template_level: Any = None, name: str = "<bytes>"
                    ) -> LevelBuffer:
-        from level_buffer.fileformat import decode
-
         return cls.from_state(decode(data, name, template_level))
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -504,8 +470,6 @@ class LevelBuffer:
         file must hold exactly its leaves, shapes and dtypes); without one, as dicts keyed by
         key path ("units.health"). Raises BufferFileError naming the file for a missing,
         truncated, corrupted or mismatched file; nothing is half-loaded."""
-        from level_buffer.fileformat import BufferFileError
-
         try:
             data = Path(path).read_bytes()
         except OSError as err:

@@ -28,29 +28,25 @@ from level_buffer.buffer import LevelBuffer
 from level_buffer.config import Source
 from level_buffer.fileformat import FORMAT_VERSION, BufferFileError
 from level_buffer.tree import named_leaves
+from tabx.errors import UserError
 
 QUANTILES = (("min", 0.0), ("p10", 0.1), ("p25", 0.25), ("median", 0.5), ("p75", 0.75),
              ("p90", 0.9), ("max", 1.0))
 
-
-def _user_error(message: str) -> Exception:
-    from tabx.cli import UserError  # late: tabx.cli imports this module
-
-    return UserError(message)
 
 
 def _load(path: str) -> LevelBuffer:
     try:
         return LevelBuffer.load(path)
     except BufferFileError as err:
-        raise _user_error(str(err)) from err
+        raise UserError(str(err)) from err
 
 
 def _check_id(buf: LevelBuffer, level_id: int, path: str) -> None:
     if level_id not in buf:
         ids = buf.ids
         have = f"{buf.size} levels, ids {ids.min()}..{ids.max()}" if buf.size else "it is empty"
-        raise _user_error(f"{path}: no level with id {level_id} ({have})")
+        raise UserError(f"{path}: no level with id {level_id} ({have})")
 
 
 def _jsonable(x: Any) -> Any:
@@ -176,7 +172,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 def cmd_top(args: argparse.Namespace) -> int:
     buf = _load(args.file)
     if args.k < 1:
-        raise _user_error(f"-k must be >= 1, got {args.k}")
+        raise UserError(f"-k must be >= 1, got {args.k}")
     header = (f"{'rank':>4} {'id':>8} {'score':>10} {'stale':>7} {'max ret':>10} "
               f"{'replays':>7} {'source':>8} {'parent':>8} {'depth':>5} {'policy':>6}")
     print(header)
@@ -246,7 +242,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     _check_id(buf, args.id, args.file)
     params = as_env_params(buf.get_level(args.id))
     if params is None:
-        raise _user_error(f"{args.file}: level {args.id} is not a TABX level (its fields are not "
+        raise UserError(f"{args.file}: level {args.id} is not a TABX level (its fields are not "
                           "tabx.params.EnvParams'); render draws buffers of TABX levels only")
     record = buf.record(args.id)
     title = f"buffer level {args.id} (score {record['score']:.4g}, {record['source']})"
@@ -270,10 +266,10 @@ def _histogram_counts(values: np.ndarray, bins: int) -> list[tuple[str, int]]:
 def cmd_hist(args: argparse.Namespace) -> int:
     buf = _load(args.file)
     if args.field not in buf.spec.paths:
-        raise _user_error(f"{args.file}: no level field {args.field!r}; fields: "
+        raise UserError(f"{args.file}: no level field {args.field!r}; fields: "
                           f"{', '.join(buf.spec.paths)}")
     if args.bins < 1:
-        raise _user_error(f"--bins must be >= 1, got {args.bins}")
+        raise UserError(f"--bins must be >= 1, got {args.bins}")
     values = buf.leaf(args.field).astype(np.float64).ravel()
     finite = values[np.isfinite(values)]
     shape = buf.spec.shapes[buf.spec.paths.index(args.field)]
@@ -299,7 +295,7 @@ def _write_png(path: str, values: np.ndarray, field: str, bins: int) -> None:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
     except ImportError as err:
-        raise _user_error("--png needs matplotlib, which is not installed "
+        raise UserError("--png needs matplotlib, which is not installed "
                           "(pip install matplotlib)") from err
     from tabx.files import atomic_write_bytes
 

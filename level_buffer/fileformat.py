@@ -26,6 +26,7 @@ import msgpack
 import numpy as np
 
 from level_buffer.config import BufferConfig
+from level_buffer.state import SLOT_FIELDS, STAT_NAMES, BufferState
 from level_buffer.tree import LevelSpec
 
 MAGIC = "tabx-level-buffer"
@@ -58,10 +59,8 @@ def _le(arr: np.ndarray) -> bytes:
     return np.ascontiguousarray(arr, arr.dtype.newbyteorder("<")).tobytes()
 
 
-def encode(state: Any) -> bytes:
+def encode(state: BufferState) -> bytes:
     """The file bytes of a `BufferState`."""
-    from level_buffer.buffer import SLOT_FIELDS
-
     payload = msgpack.packb({
         "levels": [_le(x) for x in state.levels],
         "slots": {name: _le(state.slots[name]) for name in SLOT_FIELDS},
@@ -144,8 +143,6 @@ def read_header(data: bytes, name: str) -> tuple[dict[str, Any], bytes]:
 
 def decode(data: bytes, name: str, template_level: Any = None) -> Any:
     """A validated `BufferState` from file bytes; BufferFileError(name, ...) on any problem."""
-    from level_buffer.buffer import SLOT_FIELDS, STAT_NAMES, BufferState
-
     header, payload_bytes = read_header(data, name)
     try:
         spec = LevelSpec.from_header(_get(header, "leaves", list, "header"))

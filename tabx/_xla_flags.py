@@ -2,13 +2,14 @@
 
 1. On jaxlib 0.10 the CPU compiler routes small reductions through its experimental YNN
    fusion, which is 1.5-2x slower for the (envs, units, units) reductions of this simulator
-   (measured in docs/benchmarks.md): we turn it off.
+   (docs/benchmarks.md, "Simulator step"): we turn it off.
 2. One CPU device per usable core (`--xla_force_host_platform_device_count`), so that a
    learner can split its envs over the cores as data-parallel shards (ued/learners/ppo.py
    `learner_devices`): an update is a long chain of small kernels that one device runs on
    about 1.25 cores, while two devices with half the envs each run side by side (IPPO on
-   crossfire 1.3x faster on 2 cores, docs/benchmarks.md). Programs that do not ask for the
-   other devices run on the first one as before. Only affects JAX's CPU platform.
+   crossfire 1.3x faster on 2 cores, docs/learners.md, "Data parallel over devices").
+   Programs that do not ask for the other devices run on the first one, as fast as on a
+   single device. Only affects JAX's CPU platform.
 
 Each flag is added to XLA_FLAGS only when the user has not set it, only for jaxlib versions
 known to accept it (an unknown XLA flag aborts the process), and never when

@@ -1,10 +1,11 @@
 """`tabx bench env`: simulator throughput and compile time. `tabx bench scale | reconfig |
-compare` (issue #5) build on the machinery here: tabx/bench_suite.py.
+compare` build on the machinery here (tabx/bench_suite.py); the command line is
+tabx/bench_cli.py.
 
-`--ally` / `--enemy` choose each team's controller (tabx.controllers): the heuristic protocol
-of issue #3 is `--enemy heuristic:medium` (random allies, scripted enemies).
+`--ally` / `--enemy` choose each team's controller (tabx.controllers): the scripted-enemy
+benchmark is `--enemy heuristic:medium` (random allies, scripted enemies).
 
-Protocol (issue #2): random legal actions for every unit slot; `jit` of a 128-step `lax.scan`
+Protocol: random legal actions for every unit slot; `jit` of a 128-step `lax.scan`
 over `vmap(step_autoreset)`; the batch of levels is a jit *argument* (never a baked-in
 constant); one warm-up call, then 3 timed calls (median, `block_until_ready`). Env steps/s =
 num_envs x steps / seconds, compile excluded; compile time (lower + compile) reported
@@ -20,7 +21,6 @@ import json
 import os
 import platform
 import statistics
-import sys
 import time
 from dataclasses import asdict, dataclass
 
@@ -53,6 +53,28 @@ class BenchResult:
     steps_per_s: float
     controllers: str = "random/random"
     load_avg: float | None = None  # 1-minute load average when the run started (shared machines)
+
+
+@dataclass
+class ReconfigResult:
+    simulator: str
+    scenarios: int  # scenarios the result speaks for
+    num_envs: int
+    steps: int
+    total_s: float  # first call to last result, compilation included (extrapolated if flagged)
+    first_s: float  # first scenario: trace + compile + run
+    compile_s: float  # trace, lowering and XLA compile seconds, all scenarios (measured ones)
+    compilations: int  # XLA compilations while timing (measured scenarios)
+    recompilations: int  # compilations after the first scenario
+    effective_steps_per_s: float  # scenarios x num_envs x steps / total_s
+    measured_scenarios: int = 0  # scenarios really run (< scenarios when extrapolated)
+    extrapolated: bool = False
+    generate_s: float = 0.0  # building and validating the levels (not in total_s)
+    load_avg: float | None = None
+
+    @property
+    def env_steps(self) -> int:
+        return self.scenarios * self.num_envs * self.steps
 
 
 def bench_level(team_size: int, num_zones: int) -> tuple[EnvConfig, EnvParams]:
@@ -174,7 +196,7 @@ def machine_summary() -> str:
 
 
 def bench_env(args: argparse.Namespace) -> int:
-    from tabx.cli import UserError
+    from tabx.errors import UserError
 
     try:
         controllers = (Controller.parse_scripted(args.ally), Controller.parse_scripted(args.enemy))
@@ -209,54 +231,3 @@ def write_results(path: str, results: list) -> None:
         json.dumps({**(r if isinstance(r, dict) else asdict(r)), "machine": machine}) + "\n"
         for r in results))
     print(f"wrote {path}")
-
-
-def _positive_ints(text: str) -> list[int]:
-    try:
-        values = [int(v) for v in text.split(",") if v]
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected comma-separated integers, got {text!r}") from None
-    if not values or any(v < 0 for v in values):
-        raise argparse.ArgumentTypeError(f"expected non-negative integers, got {text!r}")
-    return values
-
-
-def add_parser(subparsers: argparse._SubParsersAction) -> None:
-    bench = subparsers.add_parser("bench", help="benchmarks (throughput, compile time)")
-    which = bench.add_subparsers(dest="bench_command", metavar="BENCH")
-    which.required = True
-    env = which.add_parser("env", help="simulator steps/s with random legal actions")
-    env.add_argument("--team-sizes", type=_positive_ints, default=list(TEAM_SIZES),
-                     help="comma-separated units per team (default 3,5,10)")
-    env.add_argument("--zones", type=_positive_ints, default=[0, 6],
-                     help="comma-separated zone counts (default 0,6)")
-    env.add_argument("--num-envs", type=_positive_ints, default=list(NUM_ENVS),
-                     help="comma-separated env counts (default 1,16,128,1024)")
-    env.add_argument("--steps", type=int, default=128, help="scan length (default 128)")
-    env.add_argument("--repeats", type=int, default=3, help="timed calls (median; default 3)")
-    env.add_argument("--no-obs", dest="obs", action="store_false",
-                     help="do not compute observations (random policy; state only)")
-    env.add_argument("--ally", default="random",
-                     help="ally controller: random, idle, heuristic[:TIER] (default random)")
-    env.add_argument("--enemy", default="random",
-                     help="enemy controller (default random; the issue #3 protocol uses "
-                          "heuristic:medium)")
-    env.add_argument("--json", help="also write results as JSON lines to this file")
-    env.set_defaults(func=bench_env)
-    from tabx.bench_suite import add_suite_parsers  # scale, reconfig, compare (issue #5)
-
-    add_suite_parsers(which)
-    try:  # the learners' benchmark lives with the learners (ued/learners/bench.py)
-        from ued.learners.bench import add_train_bench
-    except ModuleNotFoundError as err:
-        if err.name is None or not "ued.learners.bench".startswith(err.name):
-            raise
-    else:
-        add_train_bench(which)
-
-
-if __name__ == "__main__":
-    from tabx.cli import main
-
-    sys.exit(main(["bench", "env", *sys.argv[1:]]))

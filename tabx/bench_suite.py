@@ -1,4 +1,4 @@
-"""`tabx bench scale | reconfig | compare` (issue #5): scalability, reconfiguration, and a side by
+"""`tabx bench scale | reconfig | compare`: scalability, reconfiguration, and a side by
 side comparison with SMAX. The machinery (`make_rollout`, `run_one`, `BenchResult`, progress,
 JSON lines) is tabx/bench.py's; the SMAX side lives in tabx/peers/smax.py.
 
@@ -31,6 +31,7 @@ from tabx.bench import (
     RANDOM_BOTH,
     BenchResult,
     Progress,
+    ReconfigResult,
     load_average,
     machine_summary,
     make_rollout,
@@ -45,7 +46,7 @@ from tabx.params import EnvConfig, EnvParams
 SCALE_TEAM_SIZES = (3, 5, 8, 10)
 SCALE_NUM_ENVS = (1, 4, 16, 64, 256, 1024, 4096)
 SCALE_ENEMIES = ("random", "heuristic:medium")
-# Targets of issue #5 (2-core CPU).
+# Targets on the 2-core CPU machine (docs/benchmarks.md); the bench reports against them.
 TARGET_FIXED_RATIO = 2.0  # ours / SMAX env steps/s at 1024 envs, every matched team size
 TARGET_RECONFIG_RATIO = 20.0  # ours / SMAX effective throughput over 100 scenarios
 TARGET_COMPILE_S = 6.0  # compile of the 10v10 + zones rollout
@@ -121,28 +122,6 @@ def plot_scale(results: Sequence[BenchResult], path: str, title: str = "") -> No
 # --- reconfig ----------------------------------------------------------------------------------
 
 
-@dataclass
-class ReconfigResult:
-    simulator: str
-    scenarios: int  # scenarios the result speaks for
-    num_envs: int
-    steps: int
-    total_s: float  # first call to last result, compilation included (extrapolated if flagged)
-    first_s: float  # first scenario: trace + compile + run
-    compile_s: float  # trace, lowering and XLA compile seconds, all scenarios (measured ones)
-    compilations: int  # XLA compilations while timing (measured scenarios)
-    recompilations: int  # compilations after the first scenario
-    effective_steps_per_s: float  # scenarios x num_envs x steps / total_s
-    measured_scenarios: int = 0  # scenarios really run (< scenarios when extrapolated)
-    extrapolated: bool = False
-    generate_s: float = 0.0  # building and validating the levels (not in total_s)
-    load_avg: float | None = None
-
-    @property
-    def env_steps(self) -> int:
-        return self.scenarios * self.num_envs * self.steps
-
-
 def host_batch(level: EnvParams, num_envs: int) -> EnvParams:
     """num_envs copies of a level as numpy arrays (no JAX op, so nothing to compile)."""
     return jax.tree.map(lambda x: np.broadcast_to(np.asarray(x), (num_envs, *np.shape(x))),
@@ -191,7 +170,7 @@ def run_reconfig(levels: Sequence[EnvParams], config: EnvConfig, num_envs: int =
 
 
 def bench_reconfig(args: argparse.Namespace) -> int:
-    from tabx.cli import UserError
+    from tabx.errors import UserError
     from tabx.random_levels import RECONFIG_CONFIG, composition, random_levels
 
     print(f"# tabx bench reconfig on {machine_summary()}; {args.scenarios} random scenarios "
@@ -364,7 +343,7 @@ def plot_compare(rows: Sequence[CompareRow], path: str, peer_name: str,
 
 def load_peer(name: str):
     """The peer simulator object; a UserError telling how to install it when it is missing."""
-    from tabx.cli import UserError
+    from tabx.errors import UserError
     from tabx.peers import PeerUnavailable
 
     if name != "smax":
@@ -439,7 +418,7 @@ def bench_compare(args: argparse.Namespace) -> int:
 
 
 def bench_scale(args: argparse.Namespace) -> int:
-    from tabx.cli import UserError
+    from tabx.errors import UserError
 
     for text in args.enemy:
         try:
@@ -460,118 +439,6 @@ def bench_scale(args: argparse.Namespace) -> int:
     return 0
 
 
-def _int_list(minimum: int) -> Callable[[str], list[int]]:
-    def parse(text: str) -> list[int]:
-        parts = [p.strip() for p in text.split(",")]
-        if not text.strip() or any(not p for p in parts):
-            raise argparse.ArgumentTypeError(
-                f"expected a comma-separated list of integers such as 1,16,256, got {text!r}")
-        try:
-            values = [int(p) for p in parts]
-        except ValueError:
-            raise argparse.ArgumentTypeError(
-                f"expected a comma-separated list of integers, got {text!r}") from None
-        bad = [v for v in values if v < minimum]
-        if bad:
-            raise argparse.ArgumentTypeError(
-                f"every value must be >= {minimum}, got {', '.join(map(str, bad))}")
-        return values
-
-    return parse
-
-
-def _int_at_least(minimum: int) -> Callable[[str], int]:
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {value}")
-        return value
-
-    return parse
-
-
-def _team_sizes(text: str) -> list[int]:
-    values = _int_list(1)(text)
-    too_big = [v for v in values if v > 100]
-    if too_big:
-        raise argparse.ArgumentTypeError(f"at most 100 units a side, got {too_big[0]}")
-    return values
-
-
-def _controllers(text: str) -> list[str]:
-    parts = [p.strip() for p in text.split(",")]
-    if not text.strip() or any(not p for p in parts):
-        raise argparse.ArgumentTypeError(
-            f"expected comma-separated controllers such as random,heuristic:medium, got {text!r}")
-    return parts
-
-
-def add_suite_parsers(which: argparse._SubParsersAction) -> None:
-    positive, positive_list = _int_at_least(1), _int_list(1)
-    scale = which.add_parser("scale", help="steps/s versus num_envs for 3v3..10v10 (plot)")
-    scale.add_argument("--team-sizes", type=_team_sizes, default=list(SCALE_TEAM_SIZES),
-                       help="comma-separated units per team (default 3,5,8,10)")
-    scale.add_argument("--num-envs", type=positive_list, default=list(SCALE_NUM_ENVS),
-                       help="comma-separated env counts (default 1,4,16,64,256,1024,4096)")
-    scale.add_argument("--enemy", type=_controllers, default=list(SCALE_ENEMIES),
-                       help="comma-separated enemy controllers, allies random (default "
-                            "random,heuristic:medium)")
-    scale.add_argument("--zones", type=_int_at_least(0), default=0,
-                       help="zones per level (default 0)")
-    scale.add_argument("--steps", type=positive, default=128, help="scan length (default 128)")
-    scale.add_argument("--repeats", type=positive, default=3,
-                       help="timed calls (median; default 3)")
-    scale.add_argument("--no-obs", dest="obs", action="store_false",
-                       help="do not compute observations (random policy; state only)")
-    scale.add_argument("--json", help="write results as JSON lines to this file")
-    scale.add_argument("--plot", help="write a PNG plot (steps/s vs num_envs) to this file")
-    scale.set_defaults(func=bench_scale)
-
-    reconfig = which.add_parser(
-        "reconfig", help="100 random scenarios through one compiled rollout (compile included)")
-    reconfig.add_argument("--scenarios", type=positive, default=100,
-                          help="random scenarios (default 100)")
-    reconfig.add_argument("--num-envs", type=positive, default=128,
-                          help="envs per scenario (default 128)")
-    reconfig.add_argument("--steps", type=positive, default=128,
-                          help="steps per scenario (default 128)")
-    reconfig.add_argument("--seed", type=int, default=0, help="scenario generator seed")
-    reconfig.add_argument("--no-obs", dest="obs", action="store_false",
-                          help="do not compute observations")
-    reconfig.add_argument("--json", help="write the result as JSON lines to this file")
-    reconfig.set_defaults(func=bench_reconfig)
-
-    compare = which.add_parser(
-        "compare", help="side by side with SMAX (needs the peers extra: pip install -e "
-                        "'.[peers]')")
-    compare.add_argument("--peer", default="smax", help="peer simulator (default smax)")
-    compare.add_argument("--team-sizes", type=_team_sizes, default=list(SCALE_TEAM_SIZES),
-                         help="comma-separated units per team (default 3,5,8,10)")
-    compare.add_argument("--num-envs", type=positive, default=1024,
-                         help="envs for the fixed configuration (default 1024)")
-    compare.add_argument("--steps", type=positive, default=128, help="scan length (default 128)")
-    compare.add_argument("--repeats", type=positive, default=3,
-                         help="timed calls (median; default 3)")
-    compare.add_argument("--no-obs", dest="obs", action="store_false",
-                         help="drop observations in both simulators")
-    compare.add_argument("--scenarios", type=_int_at_least(0), default=100,
-                         help="reconfiguration scenarios (default 100; 0 skips reconfiguration)")
-    compare.add_argument("--peer-scenarios", type=positive, default=None,
-                         help="scenarios to really run on the peer, the rest extrapolated "
-                              "(default: all)")
-    compare.add_argument("--reconfig-envs", type=positive, default=128,
-                         help="envs per reconfiguration scenario (default 128)")
-    compare.add_argument("--reconfig-steps", type=positive, default=128,
-                         help="steps per reconfiguration scenario (default 128)")
-    compare.add_argument("--seed", type=int, default=0, help="scenario generator seed")
-    compare.add_argument("--json", help="write all results as JSON lines to this file")
-    compare.add_argument("--plot", help="write a PNG plot to this file")
-    compare.set_defaults(func=bench_compare)
-
-
-__all__ = ["ReconfigResult", "TabxSimulator", "compare_rows", "format_compare",
+__all__ = ["TabxSimulator", "compare_rows", "format_compare",
            "plot_compare", "plot_scale", "reconfig_ratio", "run_compare", "run_reconfig",
            "run_scale"]

@@ -1,70 +1,72 @@
-"""The `tabx` command line: one entry point, sub-commands registered by the modules that own them.
+"""The command-line machinery, and the simulator's own commands.
 
-Each registrar module exposes `add_parser(subparsers)`, which adds its sub-command and sets
-`func` on its parser; `func(args) -> int` is the exit code. Errors the user can fix (a bad file,
-a bad value) are raised as `UserError` and printed without a traceback.
+A command is added by a *registrar*: a function `add_parser(subparsers)` that adds its
+sub-command and sets `func` on its parser; `func(args) -> int` is the exit code. Errors the
+user can fix (a bad file, a bad value) are raised as `tabx.errors.UserError` and printed as one
+line, without a traceback.
+
+The installed `tabx` command is `tabx_ued.cli:main`: it adds the commands of every layer
+(buffer, train, eval, levels, plot, bench train) to the simulator's. This module's `main` is
+the simulator alone (`python -m tabx.cli scenarios list`), usable without the learning side.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
+from collections.abc import Callable, Iterable, Mapping
 
-REGISTRARS = (
-    "tabx.scenarios.cli",  # tabx scenarios list|show|validate|render
-    "tabx.rollout",  # tabx rollout
-    "tabx.bench",  # tabx bench env
-    "level_buffer.cli",  # tabx buffer ...
-    "tabx.editor.cli",  # tabx editor
-    "ued.cli",  # tabx train, tabx eval
-    "ued.levels_cli",  # tabx levels sample
-    "ued.plot",  # tabx plot
-)
+from tabx import bench_cli, rollout, tournament
+from tabx.editor import cli as editor_cli
+from tabx.errors import UserError
+from tabx.scenarios import cli as scenarios_cli
+
+Registrar = Callable[[argparse._SubParsersAction], object]
 # Commands whose first argument is a fixed word next to a free positional of another command
-# (`tabx eval heuristics NAME` beside `tabx eval RUN_DIR`): (command, word) -> registrar module
-# whose `add_route_parser(subparsers)` adds a parser named `word` under `command`.
-ROUTES = {
-    ("eval", "heuristics"): "tabx.tournament",  # tabx eval heuristics NAME
-}
+# (`tabx eval heuristics NAME` beside `tabx eval RUN_DIR`): (command, word) -> a registrar that
+# adds a parser named `word`.
+Routes = Mapping[tuple[str, str], Registrar]
+
+ROUTES: Routes = {("eval", "heuristics"): tournament.add_route_parser}
 
 
-class UserError(Exception):
-    """An error in the user's input (file, option, value): printed as one clear line."""
+def add_simulator_commands(subparsers: argparse._SubParsersAction,
+                           bench_extra: Iterable[Registrar] = ()) -> None:
+    """`tabx scenarios | rollout | bench | editor`; `bench_extra` adds benchmarks of the layers
+    above (see `tabx.bench_cli.add_parser`)."""
+    scenarios_cli.add_parser(subparsers)
+    rollout.add_parser(subparsers)
+    bench_cli.add_parser(subparsers, bench_extra)
+    editor_cli.add_parser(subparsers)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(registrars: Iterable[Registrar]) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="tabx", description="TABX battle simulator, MARL learners and UED tools.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
-    for name in REGISTRARS:
-        try:
-            module = importlib.import_module(name)
-        except ModuleNotFoundError as err:
-            # A registrar that is not part of this install yet; anything else is a real error.
-            if err.name is not None and name.startswith(err.name):
-                continue
-            raise
-        module.add_parser(sub)
+    for add in registrars:
+        add(sub)
     return parser
 
 
-def build_route_parser(command: str, word: str) -> argparse.ArgumentParser:
+def build_route_parser(command: str, word: str, routes: Routes) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=f"tabx {command}")
     sub = parser.add_subparsers(dest="route", metavar=word)
     sub.required = True
-    importlib.import_module(ROUTES[(command, word)]).add_route_parser(sub)
+    routes[(command, word)](sub)
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
+def run(argv: list[str] | None, registrars: Iterable[Registrar], routes: Routes = ROUTES
+        ) -> int:
+    """Parse `argv` (default: sys.argv[1:]) against the registrars' commands and run one."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    if tuple(argv[:2]) in ROUTES:
-        args = build_route_parser(argv[0], argv[1]).parse_args(argv[1:])
+    if tuple(argv[:2]) in routes:
+        args = build_route_parser(argv[0], argv[1], routes).parse_args(argv[1:])
         args.command = argv[0]
     else:
-        args = build_parser().parse_args(argv)
+        args = build_parser(registrars).parse_args(argv)
     try:
         return int(args.func(args) or 0)
     except UserError as err:
@@ -78,8 +80,13 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
 
-if __name__ == "__main__":
-    # Re-import so that UserError is the class the sub-commands raise (not __main__.UserError).
-    from tabx.cli import main as _main
+def main(argv: list[str] | None = None) -> int:
+    """The simulator's commands only."""
+    return run(argv, [add_simulator_commands])
 
-    sys.exit(_main())
+
+__all__ = ["ROUTES", "Registrar", "UserError", "add_simulator_commands", "build_parser", "main",
+           "run"]
+
+if __name__ == "__main__":
+    sys.exit(main())

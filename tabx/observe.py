@@ -83,10 +83,10 @@ def observe(config: EnvConfig, state: EnvState, params: EnvParams) -> jax.Array:
     `pair` (N, N, 16), masked by visibility. Viewer i's row is then `[own i | pair[i, i+1:] |
     pair[i, :i] | zones i]`: contiguous pieces, written with one concatenate over the flat
     per-env observation. XLA:CPU copies these pieces in contiguous runs; a single
-    constant-index gather (the previous formulation) read the source with a stride of one
-    env's values and transposed its result, and the whole 10v10 + 6 zone rollout step was 18%
-    slower with it (docs/benchmarks.md, "Observation by slices (session 4)"). Same values,
-    bit for bit (tests/test_observe_fast.py checks against a per-viewer reference).
+    constant-index gather reads the source with a stride of one env's values and transposes
+    its result, and makes the whole 10v10 + 6 zone rollout step about 18% slower
+    (docs/benchmarks.md, "Observation layout"). Same values, bit for bit
+    (tests/test_observe_fast.py checks against a per-viewer reference).
     """
     n = config.num_units
     u = params.units

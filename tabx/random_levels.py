@@ -1,4 +1,4 @@
-"""Random scenarios for the reconfiguration benchmark (`tabx bench reconfig`, issue #5).
+"""Random scenarios for the reconfiguration benchmark (`tabx bench reconfig`, docs/benchmarks.md).
 
 Each level draws its own unit composition (types uniformly from the nine units, `min_units ..
 max_units` a side, independently per team), positions (allies in the left third, enemies in

@@ -95,7 +95,7 @@ def run_episode(config: EnvConfig, level: EnvParams, steps: int, seed: int,
 
 
 def cmd_rollout(args: argparse.Namespace) -> int:
-    from tabx.cli import UserError
+    from tabx.errors import UserError
     from tabx.scenarios import ScenarioError, config_for, load_named
 
     if args.steps < 1:

@@ -130,7 +130,7 @@ def tier_table(config: EnvConfig, level: EnvParams, episodes: int, seed: int = 0
 
 
 def cmd_eval_heuristics(args: argparse.Namespace) -> int:
-    from tabx.cli import UserError
+    from tabx.errors import UserError
     from tabx.files import atomic_write_json
     from tabx.scenarios import ScenarioError, config_for, load_named
 

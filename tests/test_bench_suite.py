@@ -1,4 +1,4 @@
-"""`tabx bench scale | reconfig | compare` (issue #5): argument errors, the random scenario
+"""`tabx bench scale | reconfig | compare`: argument errors, the random scenario
 generator, zero recompilations across scenarios (with a counter shown to move), the JSON lines
 and plot of `scale`, and the comparison table with fake simulators (no jaxmarl needed)."""
 
@@ -24,12 +24,12 @@ from tabx.bench_suite import (
     run_compare,
     run_reconfig,
 )
-from tabx.cli import main
 from tabx.compile_counter import CompileCounter
 from tabx.env import TabxEnv
 from tabx.params import EnvConfig, levels_equal
 from tabx.random_levels import composition, random_levels
 from tabx.scenarios.format import level_to_scenario
+from tabx_ued.cli import main
 
 SMALL = EnvConfig(max_allies=4, max_enemies=4, max_zones=3, max_steps=32)
 

@@ -20,15 +20,16 @@ import numpy as np
 import pytest
 from test_learners_helpers import ENV_CONFIG, tiny_config
 
-from tabx.cli import main
 from tabx.compile_counter import CompileCounter
 from tabx.params import HEURISTIC_TIERS, make_level
 from tabx.scenarios import config_for, level_to_scenario, load_named, save_scenario
+from tabx_ued.cli import main
 from ued.checkpoint import Checkpoints
 from ued.errors import ConfigError
+from ued.experiment import learner_for
+from ued.run_folder import CHECKPOINT_DIR, CONFIG_FILE
 from ued.suites import EvalSuite, list_suites, load_suite, parse_suite
 from ued.tensorboard import SummaryWriter, read_scalars
-from ued.train import CHECKPOINT_DIR, CONFIG_FILE, learner_for
 from workers.evaluator import Evaluator, format_table, log, scalars, to_json
 
 EPISODES = 3

@@ -529,7 +529,9 @@ def test_tensorboard_events_are_readable(tmp_path):
 
 def test_resume_continues_bit_for_bit(tmp_path):
     from ued.checkpoint import Checkpoints
-    from ued.train import CHECKPOINT_DIR, learner_for, train
+    from ued.experiment import learner_for
+    from ued.run_folder import CHECKPOINT_DIR
+    from workers.train import train
 
     config = tiny_config(**{"run.checkpoint_every": 2})  # 4 updates; checkpoints at 2, 4
     full = train(config, run_dir=tmp_path / "full", progress=False)
@@ -560,7 +562,7 @@ def test_resume_continues_bit_for_bit(tmp_path):
 
 
 def test_levels_repeat_the_scenarios_in_turn():
-    from ued.train import training_levels
+    from ued.experiment import training_levels
 
     config = tiny_config(**{"learner.num_envs": 4})
     _, levels = training_levels(config)

@@ -59,7 +59,7 @@ def tiny_config(**overrides: Any) -> TrainConfig:
 
 
 def tiny_learner():
-    from ued.train import learner_for
+    from ued.experiment import learner_for
 
     return learner_for(tiny_config())
 

@@ -1,5 +1,5 @@
 """`tabx buffer ...`: output of every action and clear user errors. One test goes through
-`tabx.cli.main` (the registrar is found and wired); the others use a parser holding only
+`tabx_ued.cli.main` (the registrar is found and wired); the others use a parser holding only
 `level_buffer.cli`, so that sibling registrars being edited cannot break these tests."""
 
 from __future__ import annotations
@@ -11,9 +11,10 @@ import sys
 import numpy as np
 import pytest
 
+import tabx_ued.cli as tabx_cli
 from level_buffer import LevelBuffer, Source
 from level_buffer import cli as buffer_cli
-from tabx import cli as tabx_cli
+from tabx.errors import UserError
 
 
 @pytest.fixture
@@ -33,14 +34,14 @@ def buffer_file(tmp_path):
 
 
 def main(argv: list[str]) -> int:
-    """tabx.cli.main's dispatch, with only the buffer registrar."""
+    """tabx_ued.cli.main's dispatch, with only the buffer registrar."""
     parser = argparse.ArgumentParser(prog="tabx")
     sub = parser.add_subparsers(dest="command")
     buffer_cli.add_parser(sub)
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except tabx_cli.UserError as err:
+    except UserError as err:
         print(f"tabx {args.command}: error: {err}", file=sys.stderr)
         return 2
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from PIL import Image
 
-from tabx.cli import main
+from tabx_ued.cli import main
 
 CONFIG = str(Path(__file__).resolve().parents[1] / "configs" / "ued" / "quickstart.yaml")
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from PIL import Image
 
-from tabx.cli import main
+from tabx_ued.cli import main
 from ued.plot import matching
 from ued.tensorboard import SummaryWriter
 
@@ -45,27 +45,3 @@ def test_matching_wildcards():
     assert matching(tags, "eval/*/mean_win_rate") == ["eval/a/mean_win_rate"]
     assert matching(tags, "episode/win_rate") == ["episode/win_rate"]
     assert matching(tags, "loss/*") == []
-
-
-def test_matmul_dtype_plot_tool_draws_the_learning_comparison(tmp_path):
-    """tools/plot_matmul_dtype.py (the figure of docs/learners.md, "Matmul precision")."""
-    import json
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    battle, crossfire = tmp_path / "battle.jsonl", tmp_path / "crossfire.jsonl"
-    battle.write_text("".join(
-        json.dumps({"algorithm": a, "dtype": d, "seed": s, "win_rate": [0.1, 0.5 + s / 10]}) + "\n"
-        for a in ("mappo", "ippo") for d in ("float32", "bfloat16") for s in range(2)))
-    metrics = [{"episode/length": 150.0 + i, "loss/entropy": 2.0 - i / 10} for i in range(3)]
-    crossfire.write_text("".join(
-        json.dumps({"algorithm": a, "dtype": d, "metrics": metrics}) + "\n"
-        for a in ("mappo", "ippo") for d in ("float32", "bfloat16")))
-    out = tmp_path / "img" / "dtype.png"
-    tool = Path(__file__).resolve().parent.parent / "tools" / "plot_matmul_dtype.py"
-    done = subprocess.run([sys.executable, str(tool), str(battle), str(crossfire), "--out",
-                           str(out)], capture_output=True, text=True, timeout=120)
-    assert done.returncode == 0, done.stderr[-2000:]
-    width, height = Image.open(out).size
-    assert width > 2 * height  # three panels side by side

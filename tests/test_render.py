@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
+import tabx_ued.cli as tabx_cli
 from level_buffer import LevelBuffer
-from tabx import cli as tabx_cli
 from tabx import constants as C
 from tabx import render
 from tabx.env import TabxEnv

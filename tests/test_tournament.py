@@ -44,7 +44,7 @@ def test_unknown_tier_is_refused(grid):
 def test_eval_heuristics_cli_prints_the_table_and_writes_json(capsys, tmp_path):
     import json
 
-    from tabx.cli import main
+    from tabx_ued.cli import main
 
     out_json = tmp_path / "t.json"
     code = main(["eval", "heuristics", "grid", "--episodes", "256", "--tiers", "random,expert",
@@ -63,7 +63,7 @@ def test_eval_heuristics_cli_prints_the_table_and_writes_json(capsys, tmp_path):
     (["eval", "heuristics", "grid", "--episodes", "0"], "--episodes must be >= 1"),
 ])
 def test_eval_heuristics_cli_errors(capsys, argv, message):
-    from tabx.cli import main
+    from tabx_ued.cli import main
 
     assert main(argv) == 2
     assert message in capsys.readouterr().err

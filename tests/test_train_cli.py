@@ -9,9 +9,10 @@ import jax
 import pytest
 from test_learners_helpers import tiny_config
 
-from tabx.cli import main
+from tabx_ued.cli import main
 from ued.checkpoint import Checkpoints
-from ued.train import CHECKPOINT_DIR, CONFIG_FILE, learner_for
+from ued.experiment import learner_for
+from ued.run_folder import CHECKPOINT_DIR, CONFIG_FILE
 
 
 def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
@@ -115,7 +116,7 @@ def test_policy_against_policy(capsys, tmp_path, tiny_yaml):
 def test_run_folders_from_before_matmul_dtype_keep_float32(tmp_path):
     """A resolved config without `learner.matmul_dtype` (written before the field existed)
     resumes and evaluates in float32, as it trained; a current one in its own dtype."""
-    from ued.train import read_run_config
+    from ued.run_folder import read_run_config
 
     text = tiny_config().to_yaml()
     assert "matmul_dtype: bfloat16" in text

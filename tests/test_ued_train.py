@@ -18,10 +18,11 @@ from level_buffer import LevelBuffer
 from tabx.compile_counter import CompileCounter
 from ued.config import ConfigError, config_from_dict
 from ued.curricula import ACCEL, PLR, SFL, Branch, DomainRandomization, make_curriculum
-from ued.train import train
-from workers.driver import LEVELS_DIR, UEDRun
+from ued.run_folder import LEVELS_DIR
 from workers.learner import Learner
 from workers.level_service import snapshot_steps
+from workers.local import UEDRun
+from workers.train import train
 
 
 class Decisions:
@@ -170,7 +171,7 @@ def test_resume_continues_exactly(tmp_path):
     assert snapshot_steps(part / LEVELS_DIR)[-1] == 4
     train(run_dir=part, resume=True, stream=io.StringIO(), max_updates=4)
     from ued.checkpoint import Checkpoints
-    from ued.train import CHECKPOINT_DIR
+    from ued.run_folder import CHECKPOINT_DIR
 
     template = UEDRun(config).learner.init(jax.random.key(0))
     with Checkpoints(full / CHECKPOINT_DIR) as a, Checkpoints(part / CHECKPOINT_DIR) as b:
@@ -230,7 +231,7 @@ def test_shipped_ued_configs_load_and_their_suites_fit():
 def test_evaluator_logs_during_training_and_snapshots_are_buffer_files(tmp_path, capsys):
     from test_learners_helpers import scenario_file
 
-    from tabx.cli import main
+    from tabx_ued.cli import main
     from ued.tensorboard import read_scalars
 
     suite = tmp_path / "duel.yaml"

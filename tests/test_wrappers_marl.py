@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from tabx import constants as C
-from tabx.cli import main
 from tabx.env import TabxEnv, random_legal_actions
 from tabx.marl import TabxMarlEnv
 from tabx.params import EnvConfig, levels_equal, make_level
 from tabx.wrappers import AutoResetEnv
+from tabx_ued.cli import main
 
 CONFIG = EnvConfig(max_allies=2, max_enemies=2, max_zones=1, max_steps=6)
 

@@ -1,4 +1,4 @@
-"""One-off converter: the reference implementation's scenario JSON -> our bundled files.
+"""Converter: the reference implementation's scenario JSON -> our bundled files.
 
     python tools/convert_reference_scenarios.py [--reference DIR] [--out tabx/data]
 

@@ -10,8 +10,8 @@ writes (protobuf wire format, decoded by hand: XSpace.planes -> XPlane.lines -> 
 names from XPlane.event_metadata) and prints the total time and count per kernel kind
 (`fusion.12` and `fusion.7` are one kind, `fusion`) or, with `--by-kernel`, per kernel. It
 also prints how busy XLA's threads were: their summed kernel time against the wall time from
-the first kernel to the end of the last. Used for the profiles in docs/benchmarks.md and
-docs/learners.md ("Performance").
+the first kernel to the end of the last. How to take a trace: docs/benchmarks.md, "How to
+profile"; the profiles of docs/learners.md ("Performance") were summarised with it.
 """
 
 from __future__ import annotations

@@ -37,50 +37,13 @@ from tabx.controllers import Controller, controlled_actions, with_tiers
 from tabx.env import TabxEnv
 from tabx.jit_options import learner_jit
 from tabx.params import EnvConfig, EnvParams, repeat_level
-from ued.checkpoint import Checkpoints
-from ued.config import ConfigError, TrainConfig
-from ued.learners.ppo import PPOLearner, masked_logits
+from ued.config import TEAMS, ConfigError
+from ued.learners.ppo import masked_logits
+from ued.run_folder import TrainedPolicy, load_policy
 
-TEAM_NAMES = ("ally", "enemy")
-
-
-@dataclass(frozen=True)
-class TrainedPolicy:
-    """A policy loaded from a run folder."""
-
-    run_dir: Path
-    config: TrainConfig
-    learner: PPOLearner
-    params: Any
-    update: int
-
-    @property
-    def team(self) -> int:
-        return TEAM_NAMES.index(self.config.env.team)
-
-    def __str__(self) -> str:
-        return f"{self.run_dir} ({self.config.algorithm}, update {self.update})"
-
+TEAM_NAMES = TEAMS  # index = team code (C.ALLY, C.ENEMY)
 
 Side = TrainedPolicy | Controller
-
-
-def load_policy(run_dir: str | Path, checkpoint: int | None = None) -> TrainedPolicy:
-    """The policy of a run folder at its newest (or the given) checkpoint."""
-    from ued.train import CHECKPOINT_DIR, learner_for, read_run_config
-
-    run_dir = Path(run_dir)
-    config = read_run_config(run_dir)
-    learner = learner_for(config)
-    template = learner.init(jax.random.key(0))
-    with Checkpoints(run_dir / CHECKPOINT_DIR, keep=config.run.keep_checkpoints) as ckpts:
-        if ckpts.latest() is None:
-            raise ConfigError(f"{run_dir}: no checkpoint yet")
-        if checkpoint is not None and checkpoint not in ckpts.all():
-            raise ConfigError(f"{run_dir}: no checkpoint {checkpoint} (have "
-                              f"{', '.join(map(str, ckpts.all()))})")
-        state, _, update = ckpts.restore(template, checkpoint)
-    return TrainedPolicy(run_dir, config, learner, state.params, update)
 
 
 def parse_side(text: str) -> Side:

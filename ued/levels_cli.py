@@ -18,19 +18,14 @@ import jax
 import jax.numpy as jnp
 from PIL import Image
 
+from tabx.errors import UserError
 from tabx.params import index_level, stack_levels
-
-
-def _user_error(message: str) -> Exception:
-    from tabx.cli import UserError  # late: tabx.cli imports this module
-
-    return UserError(message)
 
 
 def sample_levels(config, n: int, seed: int, mutate: bool):
     """(env_config, the n levels as one batch, a title per level)."""
+    from ued.experiment import learner_for, scenario_levels
     from ued.levels import LevelGenerator
-    from ued.train import learner_for, scenario_levels
 
     env_config, base = scenario_levels(config)
     learner = learner_for(config, env_config)
@@ -68,11 +63,11 @@ def cmd_sample(args: argparse.Namespace) -> int:
 
     check_render_options(args.out, args.scale)
     if args.n < 1 or args.n > 64:
-        raise _user_error(f"--n: expected 1 to 64 levels, got {args.n}")
+        raise UserError(f"--n: expected 1 to 64 levels, got {args.n}")
     try:
         config = load_config(args.config, args.overrides)
     except ConfigError as err:
-        raise _user_error(str(err)) from None
+        raise UserError(str(err)) from None
     env_config, levels, titles = sample_levels(config, args.n, args.seed, args.mutate)
     images = [render_level(env_config, index_level(levels, i), scale=args.scale, title=title)
               for i, title in enumerate(titles)]

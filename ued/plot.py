@@ -15,14 +15,11 @@ import argparse
 import math
 from pathlib import Path
 
+from tabx.errors import UserError
+
 DEFAULT_TAGS = ("episode/win_rate", "eval/*/mean_win_rate", "buffer/size",
                 "buffer/score_mean")
 
-
-def _user_error(message: str) -> Exception:
-    from tabx.cli import UserError  # late: tabx.cli imports this module
-
-    return UserError(message)
 
 
 def matching(tags: list[str], pattern: str) -> list[str]:
@@ -36,13 +33,14 @@ def matching(tags: list[str], pattern: str) -> list[str]:
 
 def load_runs(run_dirs: list[str]) -> dict[str, dict[str, list[tuple[int, float]]]]:
     """Run folder name -> its scalars (tag -> [(step, value)])."""
+    from ued.run_folder import EVENTS_DIR
     from ued.tensorboard import read_scalars
 
     out = {}
     for run in run_dirs:
-        events = Path(run) / "events"
+        events = Path(run) / EVENTS_DIR
         if not events.is_dir():
-            raise _user_error(f"{run}: not a run folder (no events/ folder)")
+            raise UserError(f"{run}: not a run folder (no events/ folder)")
         out[Path(run).name] = read_scalars(events)
     return out
 
@@ -64,7 +62,7 @@ def plot_runs(runs: dict[str, dict[str, list[tuple[int, float]]]], patterns: lis
             if tag not in tags:
                 tags.append(tag)
     if not tags:
-        raise _user_error(f"none of the tags {', '.join(patterns)} is in these runs (they have "
+        raise UserError(f"none of the tags {', '.join(patterns)} is in these runs (they have "
                           f"{', '.join(all_tags[:12])}{' ...' if len(all_tags) > 12 else ''})")
     columns = min(2, len(tags))
     rows = math.ceil(len(tags) / columns)
@@ -94,7 +92,7 @@ def plot_runs(runs: dict[str, dict[str, list[tuple[int, float]]]], patterns: lis
 
 def cmd_plot(args: argparse.Namespace) -> int:
     if not args.out.lower().endswith(".png"):
-        raise _user_error(f"--out must name a .png file, got {args.out!r}")
+        raise UserError(f"--out must name a .png file, got {args.out!r}")
     tags = plot_runs(load_runs(args.runs), args.tag or list(DEFAULT_TAGS), args.out)
     print(f"wrote {len(tags)} panels ({', '.join(tags)}) to {args.out}")
     return 0

@@ -1,1 +1,3 @@
-"""Workers that run alongside training: zero-shot evaluation (`workers.evaluator`), ..."""
+"""Who runs what, where: the driver interface (`workers.driver`), the local driver
+(`workers.local`), the workers it wires (LevelService, Learner, Explorer, Evaluator) and
+`workers.train.train`, the library entry of `tabx train`."""

@@ -52,8 +52,8 @@ def _warm_up() -> None:
 
 
 def cmd_editor(args: argparse.Namespace) -> int:
-    from tabx.cli import UserError
     from tabx.editor.server import make_server
+    from tabx.errors import UserError
     from tabx.scenarios import ScenarioError, load_named, user_scenario_dir
 
     initial = None

@@ -1,4 +1,4 @@
-"""Other simulators, run under our benchmark protocols for side by side numbers (issue #5).
+"""Other simulators, run under our benchmark protocols for side by side numbers.
 
 Each peer needs an optional dependency (the `peers` extra: `pip install -e ".[peers]"`); a
 missing one raises `PeerUnavailable` with the install command, never an ImportError traceback.

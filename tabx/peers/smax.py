@@ -1,4 +1,4 @@
-"""SMAX (JaxMARL 0.2.0) under our benchmark protocols, for `tabx bench compare` (issue #5).
+"""SMAX (JaxMARL 0.2.0) under our benchmark protocols, for `tabx bench compare`.
 
 Fixed configuration: an N v N SMAX scenario (unit types cycling through SMAX's six: marine,
 marauder, stalker, zealot, zergling, hydralisk), random legal actions for every agent (the same
@@ -29,7 +29,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tabx.bench import BenchResult, Progress, load_average, time_compiled
+from tabx.bench import BenchResult, Progress, ReconfigResult, load_average, time_compiled
+from tabx.compile_counter import CompileCounter
 from tabx.env import random_legal_actions
 from tabx.peers import INSTALL_HINT, PeerUnavailable
 
@@ -114,8 +115,6 @@ class SmaxSimulator:
 
     def reconfig(self, scenarios: int, num_envs: int, steps: int, seed: int, with_obs: bool,
                  measure: int | None = None, log: Callable[[str], None] | None = None):
-        from tabx.bench_suite import CompileCounter, ReconfigResult
-
         measure = scenarios if measure is None else min(measure, scenarios)
         rng = np.random.default_rng(seed)
         comps = []

@@ -37,7 +37,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _user_error(err: ScenarioError) -> Exception:
-    from tabx.cli import UserError  # late: tabx.cli imports this module
+    from tabx.errors import UserError
 
     return UserError(str(err))
 
@@ -156,7 +156,7 @@ MAX_SCALE = 40.0
 def check_render_options(out: str, scale: float) -> None:
     """UserError unless `--out` is a writable .png path and `--scale` is sensible (shared with
     `tabx buffer render`)."""
-    from tabx.cli import UserError
+    from tabx.errors import UserError
     from tabx.render import check_png_path
 
     if not (0 < scale <= MAX_SCALE):  # also rejects nan

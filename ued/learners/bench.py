@@ -1,7 +1,7 @@
 """`tabx bench train`: end-to-end training throughput of MAPPO and IPPO.
 
-Protocol (issue #7): the paper's defaults (128 envs x 512 steps per update, 4 epochs of 4
-minibatches, hidden 128) on a scenario (default crossfire) against an opponent (default the
+Protocol (docs/benchmarks.md, "Training throughput"): the paper's defaults (128 envs x 512
+steps per update, 4 epochs of 4 minibatches, hidden 128) on a scenario (default crossfire) against an opponent (default the
 medium heuristic). The first update is timed from the call to its result, compilation
 included; then `--updates` more updates are timed one by one (`block_until_ready`), and the
 steady-state throughput is env steps per update / median seconds per update. A fresh learner is

@@ -182,7 +182,7 @@ def _layer_norm_bwd(res, g):
     """dx = rstd (dy - mean(dy) - y mean(dy y)) with dy = g scale, the row means as
     matrix-vector products: autodiff of the forward made two row reductions of the
     broadcast statistics, each an unfused reduce-window and a reduce on XLA:CPU (IPPO updates
-    3-5 % faster this way, session 6)."""
+    3-5 % faster this way; docs/learners.md, "Performance")."""
     y, rstd, scale = res
     rows = tuple(range(g.ndim - 1))
     dy = g * scale

@@ -16,7 +16,7 @@ sequences are whole and the recurrent state starts from zeros at the rollout sta
 With several local devices (one per core on a CPU, see tabx/_xla_flags.py) the envs are split
 over them (`learner_devices`): each device plays and learns on its share inside a `shard_map`,
 the loss means divide by counts over all devices and the gradients are summed (`lax.psum`),
-so the parameters stay replicated; arguments and results live on the first device as before.
+so the parameters stay replicated; results come back on the first device.
 
 Agents are the unit slots of the learner's team (ally slots 0..A-1, or the enemy slots after
 them in the flipped setting); one network is shared by all of them, with a one-hot agent id

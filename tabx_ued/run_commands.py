@@ -1,4 +1,4 @@
-"""`tabx train` and `tabx eval`: the learners on the command line (a `tabx.cli` registrar).
+"""`tabx train` and `tabx eval`: runs on the command line (a registrar of `tabx_ued.cli`).
 
     tabx train configs/marl/mappo_crossfire.yaml [KEY=VALUE ...]
     tabx train --resume RUN_DIR
@@ -11,21 +11,21 @@ A side of `tabx eval` (`--ally`, `--enemy`) is a run folder or a controller
 (`heuristic[:TIER]`, `random`, `idle`); the positional RUN_DIR plays the team it was trained
 for, and the team nobody names plays the run's training opponent. `--suite` evaluates the
 run zero-shot on every entry of an evaluation suite (`ued.suites`, `workers.evaluator`).
+Training goes through `workers.train.train`, which picks the driver.
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 
-from tabx.cli import UserError
+from tabx.errors import UserError
 
 DEFAULT_EPISODES = 100  # of `tabx eval` without --suite
 
 
 def cmd_train(args: argparse.Namespace) -> int:
     from ued.config import ConfigError, load_config
-    from ued.train import train
+    from workers.train import train
 
     positional = list(args.items)
     config_path = None
@@ -62,7 +62,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from tabx.scenarios import ScenarioError, config_for, load_named
     from ued import compile_cache
     from ued.config import ConfigError
-    from ued.evaluate import TrainedPolicy, format_result, load_policy, parse_side, play
+    from ued.evaluate import format_result, parse_side, play
+    from ued.run_folder import TrainedPolicy, load_policy
 
     if args.list_suites:
         return _list_suites()
@@ -133,7 +134,7 @@ def _eval_suite(args: argparse.Namespace) -> int:
 
     from tabx.files import atomic_write_json
     from ued.config import ConfigError
-    from ued.evaluate import load_policy
+    from ued.run_folder import load_policy
     from ued.suites import load_suite
     from workers.evaluator import Evaluator, format_table, to_json
 
@@ -229,8 +230,3 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     ev.set_defaults(func=cmd_eval)
 
 __all__ = ["add_parser", "cmd_eval", "cmd_train"]
-
-if __name__ == "__main__":
-    from tabx.cli import main
-
-    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,184 @@
+"""The `tabx bench` command and its simulator sub-commands (env, scale, reconfig, compare).
+
+The measuring code lives in `tabx.bench` (one configuration at a time) and `tabx.bench_suite`
+(sweeps and the SMAX comparison); this module only turns command lines into calls. Layers
+above the simulator add their own benchmarks through `extra` (`tabx bench train` from
+`ued.learners.bench`, `tabx bench ued` from `workers`), so the simulator never imports them.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable, Iterable
+
+from tabx.bench import NUM_ENVS, TEAM_SIZES, bench_env
+from tabx.bench_suite import (
+    SCALE_ENEMIES,
+    SCALE_NUM_ENVS,
+    SCALE_TEAM_SIZES,
+    bench_compare,
+    bench_reconfig,
+    bench_scale,
+)
+
+BenchRegistrar = Callable[[argparse._SubParsersAction], None]
+
+
+def add_parser(subparsers: argparse._SubParsersAction,
+               extra: Iterable[BenchRegistrar] = ()) -> argparse._SubParsersAction:
+    """Add `tabx bench` with its simulator benchmarks, then call each of `extra` with the
+    bench sub-command group so it can add its own; returns that group."""
+    bench = subparsers.add_parser("bench", help="benchmarks (throughput, compile time)")
+    which = bench.add_subparsers(dest="bench_command", metavar="BENCH")
+    which.required = True
+    env = which.add_parser("env", help="simulator steps/s with random legal actions")
+    env.add_argument("--team-sizes", type=_positive_ints, default=list(TEAM_SIZES),
+                     help="comma-separated units per team (default 3,5,10)")
+    env.add_argument("--zones", type=_positive_ints, default=[0, 6],
+                     help="comma-separated zone counts (default 0,6)")
+    env.add_argument("--num-envs", type=_positive_ints, default=list(NUM_ENVS),
+                     help="comma-separated env counts (default 1,16,128,1024)")
+    env.add_argument("--steps", type=int, default=128, help="scan length (default 128)")
+    env.add_argument("--repeats", type=int, default=3, help="timed calls (median; default 3)")
+    env.add_argument("--no-obs", dest="obs", action="store_false",
+                     help="do not compute observations (random policy; state only)")
+    env.add_argument("--ally", default="random",
+                     help="ally controller: random, idle, heuristic[:TIER] (default random)")
+    env.add_argument("--enemy", default="random",
+                     help="enemy controller (default random; the scripted-enemy "
+                          "benchmark uses heuristic:medium)")
+    env.add_argument("--json", help="also write results as JSON lines to this file")
+    env.set_defaults(func=bench_env)
+    add_suite_parsers(which)
+    for add in extra:
+        add(which)
+    return which
+
+
+def add_suite_parsers(which: argparse._SubParsersAction) -> None:
+    positive, positive_list = _int_at_least(1), _int_list(1)
+    scale = which.add_parser("scale", help="steps/s versus num_envs for 3v3..10v10 (plot)")
+    scale.add_argument("--team-sizes", type=_team_sizes, default=list(SCALE_TEAM_SIZES),
+                       help="comma-separated units per team (default 3,5,8,10)")
+    scale.add_argument("--num-envs", type=positive_list, default=list(SCALE_NUM_ENVS),
+                       help="comma-separated env counts (default 1,4,16,64,256,1024,4096)")
+    scale.add_argument("--enemy", type=_controllers, default=list(SCALE_ENEMIES),
+                       help="comma-separated enemy controllers, allies random (default "
+                            "random,heuristic:medium)")
+    scale.add_argument("--zones", type=_int_at_least(0), default=0,
+                       help="zones per level (default 0)")
+    scale.add_argument("--steps", type=positive, default=128, help="scan length (default 128)")
+    scale.add_argument("--repeats", type=positive, default=3,
+                       help="timed calls (median; default 3)")
+    scale.add_argument("--no-obs", dest="obs", action="store_false",
+                       help="do not compute observations (random policy; state only)")
+    scale.add_argument("--json", help="write results as JSON lines to this file")
+    scale.add_argument("--plot", help="write a PNG plot (steps/s vs num_envs) to this file")
+    scale.set_defaults(func=bench_scale)
+
+    reconfig = which.add_parser(
+        "reconfig", help="100 random scenarios through one compiled rollout (compile included)")
+    reconfig.add_argument("--scenarios", type=positive, default=100,
+                          help="random scenarios (default 100)")
+    reconfig.add_argument("--num-envs", type=positive, default=128,
+                          help="envs per scenario (default 128)")
+    reconfig.add_argument("--steps", type=positive, default=128,
+                          help="steps per scenario (default 128)")
+    reconfig.add_argument("--seed", type=int, default=0, help="scenario generator seed")
+    reconfig.add_argument("--no-obs", dest="obs", action="store_false",
+                          help="do not compute observations")
+    reconfig.add_argument("--json", help="write the result as JSON lines to this file")
+    reconfig.set_defaults(func=bench_reconfig)
+
+    compare = which.add_parser(
+        "compare", help="side by side with SMAX (needs the peers extra: pip install -e "
+                        "'.[peers]')")
+    compare.add_argument("--peer", default="smax", help="peer simulator (default smax)")
+    compare.add_argument("--team-sizes", type=_team_sizes, default=list(SCALE_TEAM_SIZES),
+                         help="comma-separated units per team (default 3,5,8,10)")
+    compare.add_argument("--num-envs", type=positive, default=1024,
+                         help="envs for the fixed configuration (default 1024)")
+    compare.add_argument("--steps", type=positive, default=128, help="scan length (default 128)")
+    compare.add_argument("--repeats", type=positive, default=3,
+                         help="timed calls (median; default 3)")
+    compare.add_argument("--no-obs", dest="obs", action="store_false",
+                         help="drop observations in both simulators")
+    compare.add_argument("--scenarios", type=_int_at_least(0), default=100,
+                         help="reconfiguration scenarios (default 100; 0 skips reconfiguration)")
+    compare.add_argument("--peer-scenarios", type=positive, default=None,
+                         help="scenarios to really run on the peer, the rest extrapolated "
+                              "(default: all)")
+    compare.add_argument("--reconfig-envs", type=positive, default=128,
+                         help="envs per reconfiguration scenario (default 128)")
+    compare.add_argument("--reconfig-steps", type=positive, default=128,
+                         help="steps per reconfiguration scenario (default 128)")
+    compare.add_argument("--seed", type=int, default=0, help="scenario generator seed")
+    compare.add_argument("--json", help="write all results as JSON lines to this file")
+    compare.add_argument("--plot", help="write a PNG plot to this file")
+    compare.set_defaults(func=bench_compare)
+
+
+# --- argument types --------------------------------------------------------------------------
+
+
+def _positive_ints(text: str) -> list[int]:
+    try:
+        values = [int(v) for v in text.split(",") if v]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated integers, got {text!r}") from None
+    if not values or any(v < 0 for v in values):
+        raise argparse.ArgumentTypeError(f"expected non-negative integers, got {text!r}")
+    return values
+
+
+def _int_list(minimum: int) -> Callable[[str], list[int]]:
+    def parse(text: str) -> list[int]:
+        parts = [p.strip() for p in text.split(",")]
+        if not text.strip() or any(not p for p in parts):
+            raise argparse.ArgumentTypeError(
+                f"expected a comma-separated list of integers such as 1,16,256, got {text!r}")
+        try:
+            values = [int(p) for p in parts]
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"expected a comma-separated list of integers, got {text!r}") from None
+        bad = [v for v in values if v < minimum]
+        if bad:
+            raise argparse.ArgumentTypeError(
+                f"every value must be >= {minimum}, got {', '.join(map(str, bad))}")
+        return values
+
+    return parse
+
+
+def _int_at_least(minimum: int) -> Callable[[str], int]:
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {value}")
+        return value
+
+    return parse
+
+
+def _team_sizes(text: str) -> list[int]:
+    values = _int_list(1)(text)
+    too_big = [v for v in values if v > 100]
+    if too_big:
+        raise argparse.ArgumentTypeError(f"at most 100 units a side, got {too_big[0]}")
+    return values
+
+
+def _controllers(text: str) -> list[str]:
+    parts = [p.strip() for p in text.split(",")]
+    if not text.strip() or any(not p for p in parts):
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated controllers such as random,heuristic:medium, got {text!r}")
+    return parts
+
+
+__all__ = ["BenchRegistrar", "add_parser", "add_suite_parsers"]

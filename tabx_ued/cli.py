@@ -1,0 +1,36 @@
+"""`tabx`: one entry point whose sub-commands come from the layer that owns each.
+
+    tabx scenarios | rollout | bench | editor | eval heuristics     the simulator (tabx.cli)
+    tabx buffer ...                                               level_buffer.cli
+    tabx levels sample, tabx plot, tabx bench train               ued
+    tabx train, tabx eval                                         tabx_ued.run_commands
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from level_buffer import cli as buffer_cli
+from tabx import cli as simulator_cli
+from tabx_ued import run_commands
+from ued import levels_cli, plot
+from ued.learners.bench import add_train_bench
+
+
+def add_commands(subparsers: argparse._SubParsersAction) -> None:
+    simulator_cli.add_simulator_commands(subparsers, bench_extra=[add_train_bench])
+    buffer_cli.add_parser(subparsers)
+    run_commands.add_parser(subparsers)
+    levels_cli.add_parser(subparsers)
+    plot.add_parser(subparsers)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return simulator_cli.run(argv, [add_commands])
+
+
+__all__ = ["add_commands", "main"]
+
+if __name__ == "__main__":
+    sys.exit(main())

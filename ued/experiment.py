@@ -1,0 +1,58 @@
+"""What a `TrainConfig` builds: the EnvConfig and levels of its scenarios, and its learner.
+
+Every consumer of a config (the drivers in `workers`, `tabx eval`, `tabx levels sample`, the
+run folder's policy loader) builds these the same way, through this module.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from tabx.params import EnvConfig, EnvParams, stack_levels
+from ued.config import ConfigError, TrainConfig
+from ued.learners import make_learner
+from ued.learners.ppo import PPOLearner
+
+
+def scenario_levels(config: TrainConfig) -> tuple[EnvConfig, list[EnvParams]]:
+    """The EnvConfig that fits every scenario of the config, and one level per scenario."""
+    from tabx.scenarios import ScenarioError, config_for, load_named
+
+    scenarios = []
+    for name in config.env.scenario:
+        try:
+            scenarios.append(load_named(name))
+        except ScenarioError as err:
+            raise ConfigError(f"env.scenario: {err}") from None
+    env_config = config_for(scenarios, max_steps=config.env.max_steps)
+    return env_config, [s.to_level(env_config) for s in scenarios]
+
+
+def training_levels(config: TrainConfig) -> tuple[EnvConfig, EnvParams]:
+    """The batch of `num_envs` levels: the scenarios in turn (env i plays scenario i mod n)."""
+    env_config, levels = scenario_levels(config)
+    n = config.learner.num_envs
+    batch = stack_levels([levels[i % len(levels)] for i in range(n)])
+    return env_config, jax.tree.map(jnp.asarray, batch)
+
+
+def learner_for(config: TrainConfig, env_config: EnvConfig | None = None) -> PPOLearner:
+    """The (per-process cached) learner of a config."""
+    if env_config is None:
+        env_config = scenario_levels(config)[0]
+    return make_learner(config.algorithm, env_config, config.learner, config.env.team,
+                        config.env.opponent)
+
+
+def check_devices(config: TrainConfig) -> None:
+    """ConfigError if this machine has fewer devices than `learner.num_devices` asks for."""
+    from ued.learners.ppo import local_devices
+
+    try:
+        local_devices(config.learner.num_devices)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+
+
+__all__ = ["check_devices", "learner_for", "scenario_levels", "training_levels"]

@@ -1,0 +1,107 @@
+"""Reporting a training loop as it goes: the progress line, throughput and the log of an update.
+
+Both drivers (`workers.local`, and the Ray driver) report through these, so a run reads the
+same on the terminal and in TensorBoard wherever it ran.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from typing import Any, TextIO
+
+from ued.learners.ppo import TrainState
+from ued.tensorboard import SummaryWriter
+
+
+class Progress:
+    """A one-line progress report on a stream: updates, env steps/s, ETA and the win rate.
+    On a terminal the line is rewritten in place; otherwise a line is printed at most every
+    `every_s` seconds (and at the end)."""
+
+    def __init__(self, total: int, stream: TextIO | None = None, every_s: float = 10.0):
+        self.total = total
+        self.stream = sys.stderr if stream is None else stream
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.every_s = every_s
+        self._last = -math.inf
+
+    def show(self, update: int, steps: int, steps_per_s: float, eta_s: float,
+             win_rate: float, final: bool = False, first_update_s: float | None = None,
+             extra: str = "") -> None:
+        now = time.monotonic()
+        if not (self.tty or final or now - self._last >= self.every_s):
+            return
+        self._last = now
+        win = "-" if not math.isfinite(win_rate) else f"{win_rate:.2f}"
+        if first_update_s is not None:
+            rate = f"first update {first_update_s:.1f} s (compilation included)"
+        else:
+            rate = f"{steps_per_s:,.0f} steps/s  ETA {format_duration(eta_s)}"
+        line = f"update {update}/{self.total}  {steps:,} steps  {rate}  win {win}"
+        if extra:
+            line += f"  ({extra})"
+        if self.tty:
+            self.stream.write("\r" + line.ljust(110) + ("\n" if final else ""))
+        else:
+            self.stream.write(line + "\n")
+        self.stream.flush()
+
+
+class ThroughputClock:
+    """Wall-clock bookkeeping of a training loop: the first update's seconds (compilation
+    included), then env steps/s between reads. Read it only after the device has finished the
+    updates being timed (e.g. after `jax.device_get` of their metrics)."""
+
+    def __init__(self, start_update: int, steps_per_update: int):
+        self.steps_per_update = steps_per_update
+        self.first_update_s: float | None = None
+        self._t, self._update = time.perf_counter(), start_update
+
+    @property
+    def first_pending(self) -> bool:
+        return self.first_update_s is None
+
+    def read(self, done: int) -> tuple[dict[str, float], float]:
+        """(metrics to log, steps/s) at update `done`: {"time/first_update_s": s} and NaN on
+        the first read, then {} and the rate since the previous read."""
+        now = time.perf_counter()
+        if self.first_update_s is None:
+            self.first_update_s = now - self._t
+            out, rate = {"time/first_update_s": self.first_update_s}, math.nan
+        else:
+            out = {}
+            rate = (done - self._update) * self.steps_per_update / max(now - self._t, 1e-9)
+        self._t, self._update = now, done
+        return out, rate
+
+
+def format_duration(seconds: float) -> str:
+    if not math.isfinite(seconds):
+        return "?"
+    seconds = int(round(seconds))
+    h, rest = divmod(seconds, 3600)
+    m, s = divmod(rest, 60)
+    return f"{h}h{m:02d}m" if h else f"{m}m{s:02d}s"
+
+
+def log_update(writer: SummaryWriter, bar: Progress | None, callback, done: int,
+               train_state: TrainState, metrics: dict[str, Any], steps_per_update: int,
+               steps_per_s: float, num_updates: int, last: bool, extra: str = "") -> None:
+    """One logged update: TensorBoard scalars, the progress line, the callback."""
+    values = {k: float(v) for k, v in metrics.items()}
+    if math.isfinite(steps_per_s):
+        values["time/steps_per_s"] = steps_per_s
+    steps = done * steps_per_update
+    writer.scalars(values, step=steps)
+    if bar is not None:
+        rate = steps_per_s if math.isfinite(steps_per_s) and steps_per_s > 0 else math.nan
+        eta = (num_updates - done) * steps_per_update / rate
+        bar.show(done, steps, rate, eta, values.get("episode/win_rate", math.nan), final=last,
+                 first_update_s=values.get("time/first_update_s"), extra=extra)
+    if callback is not None:
+        callback(done, train_state, values)
+
+
+__all__ = ["Progress", "ThroughputClock", "format_duration", "log_update"]

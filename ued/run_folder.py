@@ -1,0 +1,115 @@
+"""The run folder: one place for its layout, its config, its checkpoints and the policy in them.
+
+`tabx train` makes and fills it, `--resume` continues it, `tabx eval` and `tabx plot` read it:
+
+    RUN_DIR/            run.dir/<run name>-<YYYYmmdd-HHMMSS>/
+      config.yaml       the resolved config (every field, defaults included), written atomically
+      events/           TensorBoard event files (x axis: env steps)
+      checkpoints/      orbax checkpoints (train state and key chain), the newest
+                        `run.keep_checkpoints` kept
+      levels/           UED runs: level-buffer snapshots, one per checkpoint (docs/ued.md)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import jax
+
+from tabx.files import atomic_write_text
+from ued.checkpoint import Checkpoints
+from ued.config import TEAMS, ConfigError, TrainConfig, config_from_dict
+from ued.experiment import learner_for
+from ued.learners.ppo import PPOLearner
+
+CONFIG_FILE = "config.yaml"
+EVENTS_DIR = "events"
+CHECKPOINT_DIR = "checkpoints"
+LEVELS_DIR = "levels"
+
+
+def new_run_dir(config: TrainConfig) -> Path:
+    """A fresh folder `run.dir/<run name>-<timestamp>` (a suffix if that exists already)."""
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+    base = Path(config.run.dir) / f"{config.run_name}-{stamp}"
+    path, i = base, 1
+    while path.exists():
+        i += 1
+        path = base.with_name(f"{base.name}-{i}")
+    return path
+
+
+def create_run_dir(config: TrainConfig, run_dir: str | Path | None = None) -> Path:
+    """Make the folder of a new run (`run_dir`, or a fresh one under `config.run.dir`) and
+    write its resolved config; ConfigError if it already holds a run."""
+    path = Path(run_dir) if run_dir is not None else new_run_dir(config)
+    if (path / CONFIG_FILE).exists():
+        raise ConfigError(f"{path} already holds a run; continue it with --resume {path}")
+    path.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path / CONFIG_FILE, config.to_yaml())
+    return path
+
+
+def read_run_config(run_dir: str | Path) -> TrainConfig:
+    """The resolved config saved in a run folder."""
+    import yaml
+
+    path = Path(run_dir) / CONFIG_FILE
+    if not path.is_file():
+        raise ConfigError(f"{run_dir}: not a run folder (no {CONFIG_FILE})")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{path}: not valid YAML ({err})") from None
+    if isinstance(data, dict) and isinstance(data.get("learner"), dict):
+        # A resolved config lists every field; one without `matmul_dtype` was written before
+        # that field existed, when the networks multiplied in float32: resume and evaluate it
+        # that way (docs/learners.md, "Matmul precision").
+        data["learner"].setdefault("matmul_dtype", "float32")
+    return config_from_dict(data, source=str(path))
+
+
+def open_checkpoints(run_dir: str | Path, config: TrainConfig) -> Checkpoints:
+    """The orbax checkpoints of a run folder (close it, or use it as a context manager)."""
+    return Checkpoints(Path(run_dir) / CHECKPOINT_DIR, keep=config.run.keep_checkpoints)
+
+
+@dataclass(frozen=True)
+class TrainedPolicy:
+    """A policy loaded from a run folder."""
+
+    run_dir: Path
+    config: TrainConfig
+    learner: PPOLearner
+    params: Any
+    update: int
+
+    @property
+    def team(self) -> int:
+        return TEAMS.index(self.config.env.team)
+
+    def __str__(self) -> str:
+        return f"{self.run_dir} ({self.config.algorithm}, update {self.update})"
+
+
+def load_policy(run_dir: str | Path, checkpoint: int | None = None) -> TrainedPolicy:
+    """The policy of a run folder at its newest (or the given) checkpoint."""
+    run_dir = Path(run_dir)
+    config = read_run_config(run_dir)
+    learner = learner_for(config)
+    template = learner.init(jax.random.key(0))
+    with open_checkpoints(run_dir, config) as ckpts:
+        if ckpts.latest() is None:
+            raise ConfigError(f"{run_dir}: no checkpoint yet")
+        if checkpoint is not None and checkpoint not in ckpts.all():
+            raise ConfigError(f"{run_dir}: no checkpoint {checkpoint} (have "
+                              f"{', '.join(map(str, ckpts.all()))})")
+        state, _, update = ckpts.restore(template, checkpoint)
+    return TrainedPolicy(run_dir, config, learner, state.params, update)
+
+
+__all__ = ["CHECKPOINT_DIR", "CONFIG_FILE", "EVENTS_DIR", "LEVELS_DIR", "TrainedPolicy",
+           "create_run_dir", "load_policy", "new_run_dir", "open_checkpoints", "read_run_config"]

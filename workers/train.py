@@ -1,0 +1,54 @@
+"""`train`: the library entry of `tabx train`. Makes or reopens the run folder, then hands the
+run to a driver (`workers.driver`).
+
+    from workers.train import train
+    run_dir = train(load_config("configs/ued/quickstart.yaml"))      # a new run
+    train(run_dir=run_dir, resume=True)                              # continue it
+
+New run: `config` is required; the folder is `run_dir` if given (it must not hold a run yet),
+else a fresh one under `config.run.dir` (`ued.run_folder`). Resume: `resume=True` with
+`run_dir`; the config is the run's own `config.yaml`. The persistent compilation cache is
+switched on per `run.compile_cache` before anything compiles.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TextIO
+
+from ued import compile_cache
+from ued.config import ConfigError, TrainConfig
+from ued.experiment import check_devices
+from ued.run_folder import create_run_dir, read_run_config
+from workers.driver import Callback, Driver
+from workers.local import LocalDriver
+
+
+def driver_for(config: TrainConfig) -> Driver:
+    """The driver a config asks for."""
+    return LocalDriver()
+
+
+def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = None,
+          resume: bool = False, max_updates: int | None = None, progress: bool = True,
+          stream: TextIO | None = None, callback: Callback | None = None,
+          driver: Driver | None = None) -> Path:
+    """Train; returns the run folder. `driver` overrides the one the config asks for."""
+    if resume:
+        if run_dir is None:
+            raise ConfigError("resume needs the run folder")
+        run_dir = Path(run_dir)
+        config = read_run_config(run_dir)
+    elif config is None:
+        raise ConfigError("a new run needs a config")
+    check_devices(config)  # before a new run's folder exists
+    if not resume:
+        run_dir = create_run_dir(config, run_dir)
+    assert run_dir is not None
+    compile_cache.enable(config.run.compile_cache)
+    driver = driver if driver is not None else driver_for(config)
+    return driver.run(config, Path(run_dir), resume=resume, max_updates=max_updates,
+                      progress=progress, stream=stream, callback=callback)
+
+
+__all__ = ["driver_for", "train"]
