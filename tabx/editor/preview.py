@@ -23,6 +23,7 @@ MAX_PREVIEW_STEPS = 2048
 MIN_STEP_BUCKET = 64
 MIN_SLOT_BUCKET = 4
 PREVIEW_CONTROLLERS = ("heuristic", "random", "idle")  # no learner in the editor: no external
+MAX_CONTROLLER_TEXT = 64
 
 _lock = threading.Lock()
 _compiled: dict[tuple, Any] = {}
@@ -51,12 +52,19 @@ def parse_controller(text: Any, path: str):
     """A Controller for the editor (external is refused); ScenarioError naming `path`."""
     from tabx.controllers import Controller
 
+    shown = repr(text)
+    shown = shown if len(shown) <= 60 else shown[:60] + "..."
+    if not isinstance(text, str) or not text:
+        raise ScenarioError(f"expected a controller such as heuristic:medium, got {shown}", path)
+    if len(text) > MAX_CONTROLLER_TEXT:
+        raise ScenarioError(f"expected heuristic[:TIER], random or idle (at most "
+                            f"{MAX_CONTROLLER_TEXT} characters), got {shown}", path)
     try:
         controller = Controller.parse(text)
     except ValueError as err:
         raise ScenarioError(str(err), path) from None
     if controller.kind not in PREVIEW_CONTROLLERS:
-        raise ScenarioError(f"expected heuristic[:TIER], random or idle, got {text!r}", path)
+        raise ScenarioError(f"expected heuristic[:TIER], random or idle, got {shown}", path)
     return controller
 
 

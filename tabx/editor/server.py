@@ -27,6 +27,14 @@ The API only serves names, never paths: a page cannot make the server read an ar
 Requests whose `Host` is not the server's own loopback address are refused (DNS rebinding), and
 POST bodies must be `application/json` (a cross-site form cannot post one without a preflight,
 which the server does not answer).
+
+Request bodies are bounded before anything is read: a POST needs a `Content-Length` of plain
+digits (missing: 411, chunked: 411, negative or not a number: 400, over MAX_BODY: 413). A
+request refused before its body was read is answered with `Connection: close`, so the unread
+bytes are never parsed as a next request. Bodies are parsed with the scenario files' strict JSON
+reader (`tabx.scenarios.format.parse_json_bytes`: no NaN, no repeated keys, bounded nesting), and
+the free-text fields are bounded by the validator (name 100, description MAX_DESCRIPTION
+characters). Other methods (PUT, DELETE, PATCH) get 405. Every error is a JSON answer.
 """
 
 from __future__ import annotations
@@ -61,7 +69,14 @@ from tabx.scenarios import (
     load_named,
     user_scenario_dir,
 )
-from tabx.scenarios.format import HEADING_RANGE, NAME_PATTERN, SEMI_AXIS_RANGE, ZONE_TYPES
+from tabx.scenarios.format import (
+    HEADING_RANGE,
+    MAX_DESCRIPTION,
+    NAME_PATTERN,
+    SEMI_AXIS_RANGE,
+    ZONE_TYPES,
+    parse_json_bytes,
+)
 from tabx.scenarios.registry import USER_FOLDERS, _user_files, bundled_category
 
 HOST = "127.0.0.1"
@@ -69,6 +84,9 @@ STATIC_TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; ch
                 ".css": "text/css; charset=utf-8", ".png": "image/png", ".svg": "image/svg+xml"}
 STATIC_NAME = re.compile(r"^[a-z0-9_\-]+\.(html|js|css|png|svg)$")
 MAX_BODY = 8 * 1024 * 1024
+MAX_QUERY_NAME = 201  # a composition UNITS_ZONES of two 100-character names
+CONTENT_LENGTH = re.compile(r"[0-9]{1,15}")
+SOCKET_TIMEOUT_S = 120  # a client that stops sending mid-request is dropped after this
 GRID_DEFAULTS = {"spacing": 4.25, "margin": 0.0}  # the reference editor: 28 x 18 on 121 x 78
 CSP = ("default-src 'self'; img-src 'self' data:; style-src 'self' 'unsafe-inline'; "
        "script-src 'self'; connect-src 'self'; object-src 'none'; base-uri 'none'; "
@@ -86,6 +104,11 @@ class EditorError(Exception):
         text = f"{self.path}: {self.message}" if self.path else self.message
         return {"ok": False, "error": {"message": self.message, "path": self.path, "text": text},
                 **self.extra}
+
+
+def _describe(value: Any) -> str:
+    text = repr(value)
+    return (text[:60] + "...") if len(text) > 60 else text
 
 
 def _scenario_error(err: ScenarioError, status: int = 400, **extra: Any) -> EditorError:
@@ -152,6 +175,7 @@ def units_info() -> dict[str, Any]:
         "categories": list(CATEGORIES),
         "user_folders": USER_FOLDERS,
         "name_pattern": NAME_PATTERN.pattern,
+        "max_description": MAX_DESCRIPTION,
         "arena_default": [C.ARENA_WIDTH, C.ARENA_HEIGHT],
         "grid_default": GRID_DEFAULTS,
         "max_preview_steps": _preview_module().MAX_PREVIEW_STEPS,
@@ -207,6 +231,9 @@ class EditorApp:
         """One scenario by name. Paths are refused: the page only ever names scenarios."""
         if not isinstance(name, str) or not name:
             raise EditorError(400, "expected ?name=NAME", "name")
+        if len(name) > MAX_QUERY_NAME:
+            raise EditorError(400, f"expected a scenario name of at most {MAX_QUERY_NAME} "
+                              f"characters, got {len(name)}", "name")
         if "/" in name or "\\" in name or name.endswith(".json") or "\0" in name:
             raise EditorError(400, "expected a scenario name, not a path", "name")
         try:
@@ -254,11 +281,11 @@ class EditorApp:
         if not isinstance(name, str) or "/" in name or "\\" in name or not NAME_PATTERN.match(
                 name):
             raise EditorError(400, "expected 1-100 characters from A-Z a-z 0-9 _ . -, starting "
-                              f"with a letter or digit (no path separators); got {name!r}",
-                              "name")
-        if category not in USER_FOLDERS:
-            raise EditorError(400, f"expected one of {', '.join(USER_FOLDERS)}; got {category!r}",
-                              "category")
+                              "with a letter or digit (no path separators); got "
+                              f"{_describe(name)}", "name")
+        if not isinstance(category, str) or category not in USER_FOLDERS:
+            raise EditorError(400, f"expected one of {', '.join(USER_FOLDERS)}; got "
+                              f"{_describe(category)}", "category")
         if not isinstance(overwrite, bool):
             raise EditorError(400, "expected true or false", "overwrite")
         data = body.get("scenario")
@@ -303,6 +330,11 @@ class _Handler(BaseHTTPRequestHandler):
     server: EditorServer
     protocol_version = "HTTP/1.1"
     server_version = "tabx-editor"
+    timeout = SOCKET_TIMEOUT_S
+    # True while the request may have body bytes we have not read: the answer then closes the
+    # connection, so that those bytes are never taken for the next request.
+    _unread_body = False
+    _extra_headers: tuple[tuple[str, str], ...] = ()
 
     # --- plumbing --------------------------------------------------------------------------
 
@@ -317,6 +349,10 @@ class _Handler(BaseHTTPRequestHandler):
         self.send_header("Cache-Control", cache)
         self.send_header("X-Content-Type-Options", "nosniff")
         self.send_header("Content-Security-Policy", CSP)
+        for key, value in self._extra_headers:
+            self.send_header(key, value)
+        if self._unread_body:
+            self.send_header("Connection", "close")  # also sets self.close_connection
         self.end_headers()
         if self.command != "HEAD":
             self.wfile.write(body)
@@ -345,14 +381,33 @@ class _Handler(BaseHTTPRequestHandler):
 
     # --- routes ----------------------------------------------------------------------------
 
+    def _start(self) -> None:
+        """Per-request state (one handler serves every request of a keep-alive connection)."""
+        self._extra_headers = ()
+        length = self.headers.get("Content-Length")
+        self._unread_body = (self.headers.get("Transfer-Encoding") is not None
+                             or (length is not None and length.strip() != "0"))
+
     def do_HEAD(self) -> None:  # noqa: N802 (stdlib name)
         self.do_GET()
 
     def do_GET(self) -> None:  # noqa: N802 (stdlib name)
+        self._start()
         self._guarded(self._get)
 
     def do_POST(self) -> None:  # noqa: N802 (stdlib name)
+        self._start()
         self._guarded(self._post)
+
+    def _not_allowed(self) -> None:
+        self._start()
+        self._extra_headers = (("Allow", "GET, HEAD, POST"),)
+        self._guarded(self._refuse_method)
+
+    def _refuse_method(self) -> None:
+        raise EditorError(405, f"method {self.command} not allowed; the API takes GET and POST")
+
+    do_PUT = do_DELETE = do_PATCH = _not_allowed  # noqa: N815 (stdlib names)
 
     def _get(self) -> None:
         url = urlsplit(self.path)
@@ -381,18 +436,41 @@ class _Handler(BaseHTTPRequestHandler):
         ctype = (self.headers.get("Content-Type") or "").split(";")[0].strip().lower()
         if ctype != "application/json":
             raise EditorError(415, "expected Content-Type: application/json")
+        raw = self._read_body()
         try:
-            length = int(self.headers.get("Content-Length") or 0)
-        except ValueError:
-            raise EditorError(400, "bad Content-Length") from None
-        if length > MAX_BODY:
-            raise EditorError(413, f"request body over {MAX_BODY} bytes")
-        raw = self.rfile.read(length)
-        try:
-            body = json.loads(raw.decode("utf-8"), parse_constant=_no_constant)
-        except (UnicodeDecodeError, ValueError) as err:
-            raise EditorError(400, f"invalid JSON: {err}") from None
+            body = parse_json_bytes(raw, what="request body")
+        except ScenarioError as err:
+            raise _scenario_error(err) from None
         self._json(200, getattr(self.server.app, routes[url.path])(body))
+
+    def _read_body(self) -> bytes:
+        """The request body, after checking its declared length (nothing is read before)."""
+        if self.headers.get("Transfer-Encoding") is not None:
+            raise EditorError(411, "chunked request bodies are not accepted; send a "
+                              "Content-Length header")
+        values = {v.strip() for v in self.headers.get_all("Content-Length") or []}
+        if not values:
+            raise EditorError(411, "a POST needs a Content-Length header")
+        if len(values) > 1:
+            raise EditorError(400, "conflicting Content-Length headers")
+        value = values.pop()
+        if not CONTENT_LENGTH.fullmatch(value):
+            raise EditorError(400, "expected Content-Length to be a non-negative integer, got "
+                              f"{_describe(value)}")
+        length = int(value)
+        if length > MAX_BODY:
+            raise EditorError(413, f"request body of {length} bytes is over the limit of "
+                              f"{MAX_BODY} bytes")
+        if length == 0:
+            raise EditorError(400, "empty request body: expected a JSON object")
+        try:
+            raw = self.rfile.read(length)
+        except OSError:  # TimeoutError included: the client stopped sending
+            raise EditorError(408, "the request body did not arrive in time") from None
+        if len(raw) < length:
+            raise EditorError(400, f"request body ended after {len(raw)} of {length} bytes")
+        self._unread_body = False
+        return raw
 
     def _static(self, name: str) -> None:
         suffix = name[name.rfind("."):] if "." in name else ""
@@ -402,10 +480,6 @@ class _Handler(BaseHTTPRequestHandler):
         if not entry.is_file():
             raise EditorError(404, f"no such file: {name}")
         self._send(200, entry.read_bytes(), STATIC_TYPES[suffix], cache="no-cache")
-
-
-def _no_constant(name: str) -> Any:
-    raise ValueError(f"{name} is not allowed (numbers must be finite)")
 
 
 class EditorServer(ThreadingHTTPServer):

@@ -4,11 +4,15 @@ JSON load/save and conversion to and from levels (`EnvParams`).
 The validator is table driven: `UNIT_STAT_RANGES`, `ZONE_EFFECT_RANGES`, `ARENA_RANGE`,
 `PHYSICS_RANGES` and `HEURISTIC_RANGES` are plain data so that the scenario editor can enforce
 the same ranges. Every problem is a `ScenarioError` naming the file, the field path
-(`units[3].overrides.health`) and what was expected. See docs/scenarios.md.
+(`units[3].overrides.health`) and what was expected. Files are read with a strict JSON reader
+(`read_json` / `parse_json`): no NaN/Infinity, no key repeated in an object, at most
+MAX_JSON_DEPTH levels of nesting (checked before parsing), UTF-8, at most MAX_FILE_BYTES. See
+docs/scenarios.md.
 """
 
 from __future__ import annotations
 
+import codecs
 import difflib
 import json
 import math
@@ -33,6 +37,9 @@ ZONE_TYPES = ("lava", "bush", "swamp")
 MAX_UNITS_PER_TEAM = 100  # far above any real scenario; guards against runaway files
 MAX_ZONES = 64
 NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,99}$")
+MAX_DESCRIPTION = 4000  # characters of the free-text description
+MAX_JSON_DEPTH = 32  # nested arrays and objects; a scenario file nests 4 (an editor request 5)
+MAX_FILE_BYTES = 8 * 1024 * 1024  # a scenario file is a few KiB; refuse to read more than this
 
 
 class ScenarioError(ValueError):
@@ -278,27 +285,170 @@ def load_scenario(path: str | os.PathLike) -> Scenario:
 
 
 def read_json(path: str | os.PathLike) -> Any:
-    """Parse a JSON file; unreadable or malformed files become ScenarioError."""
+    """Parse a JSON file with `parse_json`'s checks; unreadable, oversized, non-UTF-8 or
+    malformed files become ScenarioError naming the file."""
+    source = str(path)
     try:
-        text = Path(path).read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as err:
-        raise ScenarioError(f"cannot read file: {err}", source=str(path)) from None
-    return parse_json(text, str(path))
+        with Path(path).open("rb") as fh:
+            raw = fh.read(MAX_FILE_BYTES + 1)
+    except OSError as err:
+        raise ScenarioError(f"cannot read file: {err.strerror or err}", source=source) from None
+    if len(raw) > MAX_FILE_BYTES:
+        raise ScenarioError(f"file larger than {MAX_FILE_BYTES // (1024 * 1024)} MiB; expected a "
+                            "scenario (a small JSON file)", source=source)
+    return parse_json_bytes(raw, source)
 
 
-def parse_json(text: str, source: str | None = None) -> Any:
+def parse_json_bytes(raw: bytes, source: str | None = None, what: str = "file") -> Any:
+    """`parse_json` of UTF-8 bytes (a leading byte-order mark is allowed)."""
+    if raw.startswith(codecs.BOM_UTF8):
+        raw = raw[len(codecs.BOM_UTF8):]
     try:
-        # NaN and Infinity are not JSON; refuse them here instead of deep in the validator.
-        return json.loads(text, parse_constant=_bad_constant)
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise ScenarioError(f"not UTF-8 text (byte 0x{raw[err.start]:02x} at offset {err.start}); "
+                            f"expected a JSON scenario", source=source) from None
+    return parse_json(text, source, what)
+
+
+def parse_json(text: str, source: str | None = None, what: str = "file") -> Any:
+    """Strict JSON: no NaN/Infinity, no repeated key in an object, at most MAX_JSON_DEPTH nested
+    arrays and objects. Every problem is a ScenarioError naming `source`, the key path and, for
+    syntax problems, the line and column."""
+    if not text.strip():
+        raise ScenarioError(f"empty {what}: expected a JSON object {{...}} (a scenario)",
+                            source=source)
+    problem = _scan_json(text, "depth")  # before json.loads, which recurses per level
+    if problem is not None:
+        raise ScenarioError(problem[0], problem[1], source)
+    try:
+        return json.loads(text, parse_constant=_bad_constant, object_pairs_hook=_unique_object)
+    except _DuplicateKey as dup:
+        problem = _scan_json(text, "duplicate")
+        if problem is None:  # not expected: the scan and the parser agree on valid JSON
+            problem = (f"key {_describe(dup.key)} appears twice in one object; expected each "
+                       "key once", "")
+        raise ScenarioError(problem[0], problem[1], source) from None
+    except _NonFinite as bad:
+        problem = _scan_json(text, "constant") or (
+            f"{bad.name} is not allowed in JSON; expected a finite number", "")
+        raise ScenarioError(problem[0], problem[1], source) from None
     except json.JSONDecodeError as err:
-        raise ScenarioError(f"invalid JSON: {err.msg} (line {err.lineno}, column {err.colno})",
+        where = f"line {err.lineno}, column {err.colno}"
+        if err.pos >= len(text.rstrip()):
+            raise ScenarioError(f"invalid JSON: {err.msg} at the end of the {what} ({where}); is "
+                                f"the {what} truncated?", source=source) from None
+        raise ScenarioError(f"invalid JSON: {err.msg} ({where})", source=source) from None
+    except RecursionError:  # the depth scan should have caught it first
+        raise ScenarioError(f"invalid JSON: nested deeper than {MAX_JSON_DEPTH} levels",
                             source=source) from None
-    except ValueError as err:
-        raise ScenarioError(str(err), source=source) from None
+    except ValueError as err:  # e.g. an integer longer than Python's digit limit
+        msg = str(err)
+        if "int_max_str_digits" in msg:
+            msg = "a number with thousands of digits; expected a number in a field's range"
+        raise ScenarioError(f"invalid JSON: {msg if len(msg) <= 200 else msg[:200] + '...'}",
+                            source=source) from None
+
+
+class _DuplicateKey(Exception):
+    def __init__(self, key: str) -> None:
+        super().__init__(key)
+        self.key = key
+
+
+class _NonFinite(Exception):
+    def __init__(self, name: str) -> None:
+        super().__init__(name)
+        self.name = name
+
+
+def _unique_object(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    obj = dict(pairs)
+    if len(obj) != len(pairs):
+        seen: set[str] = set()
+        for key, _ in pairs:
+            if key in seen:
+                raise _DuplicateKey(key)
+            seen.add(key)
+    return obj
 
 
 def _bad_constant(name: str) -> Any:
-    raise ValueError(f"invalid JSON: {name} is not allowed (numbers must be finite)")
+    raise _NonFinite(name)
+
+
+# Strings (escapes included), the structural characters, NaN/Infinity outside strings, and a lone
+# quote (an unterminated string, which ends the scan).
+_JSON_TOKEN = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"|[\[\]{}:,]|-?Infinity|NaN|"', re.DOTALL)
+
+
+def _scan_json(text: str, find: str) -> tuple[str, str] | None:
+    """A cheap scan of JSON text that tracks the key path of every value without building it.
+
+    Always checks the nesting depth; `find="duplicate"` also finds the first repeated key of an
+    object and `find="constant"` the first NaN/Infinity. Returns (message, key path) of the
+    first problem, or None. The scan does not check the syntax: json.loads does that.
+    """
+    stack: list[list[Any]] = []  # [bracket, key or index, keys seen, pending key string]
+
+    def where(pos: int) -> str:
+        line = text.count("\n", 0, pos) + 1
+        column = pos - text.rfind("\n", 0, pos)
+        return f"line {line}, column {column}"
+
+    def path() -> str:
+        out = ""
+        for _, place, _, _ in stack:
+            if place is not None:
+                out = _join(out, place if isinstance(place, int) else _describe_key(place))
+        return out
+
+    for m in _JSON_TOKEN.finditer(text):
+        tok = m.group()
+        if tok in ("[", "{"):
+            if len(stack) >= MAX_JSON_DEPTH:
+                return (f"nested deeper than {MAX_JSON_DEPTH} levels of arrays and objects "
+                        f"({where(m.start())}); expected a scenario, which nests at most "
+                        "a few levels", path())
+            stack.append([tok, 0 if tok == "[" else None, set(), None])
+        elif tok in ("]", "}"):
+            if stack:
+                stack.pop()
+        elif tok == ",":
+            if stack and stack[-1][0] == "[":
+                stack[-1][1] += 1
+        elif tok == ":":
+            if stack and stack[-1][0] == "{" and stack[-1][3] is not None:
+                top = stack[-1]
+                key, top[3] = top[3], None
+                top[1] = key
+                if find == "duplicate" and key in top[2]:
+                    return (f"key {_describe(key)} appears twice in the same object "
+                            f"({where(m.start())}); expected each key once (JSON readers "
+                            "would silently keep the last value)", path())
+                top[2].add(key)
+        elif tok == '"':
+            return None  # an unterminated string: json.loads reports it
+        elif tok[0] == '"':
+            if stack and stack[-1][0] == "{":
+                stack[-1][3] = _decode_string(tok)
+        elif find == "constant":  # NaN, Infinity, -Infinity
+            return (f"{tok} is not allowed in JSON ({where(m.start())}); expected a finite "
+                    "number", path())
+    return None
+
+
+def _decode_string(token: str) -> str:
+    if "\\" not in token:
+        return token[1:-1]
+    try:
+        return json.loads(token)
+    except ValueError:
+        return token[1:-1]
+
+
+def _describe_key(key: str) -> str:
+    return key if len(key) <= 60 else key[:60] + "..."
 
 
 def save_scenario(path: str | os.PathLike, scenario: Scenario) -> Path:
@@ -425,6 +575,8 @@ def _physics_params(ph: Any, arena: tuple[float, float]) -> P.PhysicsParams:
 
 
 def _did_you_mean(word: str, options: Sequence[str]) -> str:
+    if len(word) > 100:  # no option is this long; spare difflib a long string
+        return ""
     close = difflib.get_close_matches(word, list(options), n=1)
     return f" (did you mean {close[0]!r}?)" if close else ""
 
@@ -433,8 +585,8 @@ def _check_keys(obj: Mapping, allowed: Sequence[str], path: str, required: Seque
     for key in obj:
         if not isinstance(key, str) or key not in allowed:
             hint = _did_you_mean(key, allowed) if isinstance(key, str) else ""
-            raise ScenarioError(f"unknown key {key!r}{hint}; allowed keys: {', '.join(allowed)}",
-                                path)
+            raise ScenarioError(f"unknown key {_describe(key)}{hint}; allowed keys: "
+                                f"{', '.join(allowed)}", path)
     for key in required:
         if key not in obj:
             raise ScenarioError(f"missing required key {key!r}", path)
@@ -509,10 +661,15 @@ def _parse(data: Any) -> Scenario:
     name = _string(d["name"], "name")
     if not NAME_PATTERN.match(name):
         raise ScenarioError("expected 1-100 characters from A-Z a-z 0-9 _ . -, starting with a "
-                            f"letter or digit; got {name!r}", "name")
+                            f"letter or digit; got {_describe(name)}", "name")
     category = _choice(d["category"], CATEGORIES, "category")
     split = _choice(d["split"], SPLITS, "split") if "split" in d else None
-    description = _string(d["description"], "description") if "description" in d else None
+    description = None
+    if "description" in d:
+        description = _string(d["description"], "description")
+        if len(description) > MAX_DESCRIPTION:
+            raise ScenarioError(f"expected at most {MAX_DESCRIPTION} characters, got "
+                                f"{len(description)}", "description")
     arena = (C.ARENA_WIDTH, C.ARENA_HEIGHT)
     if "arena" in d:
         a = _mapping(d["arena"], "arena")
@@ -568,7 +725,7 @@ def _parse_unit(value: Any, path: str, arena: tuple[float, float]) -> Unit:
     for key, v in _mapping(rec.get("overrides", {}), opath).items():
         if not isinstance(key, str) or key not in UNIT_OVERRIDE_FIELDS:
             hint = _did_you_mean(key, UNIT_OVERRIDE_FIELDS) if isinstance(key, str) else ""
-            raise ScenarioError(f"unknown stat {key!r}{hint}; allowed: "
+            raise ScenarioError(f"unknown stat {_describe(key)}{hint}; allowed: "
                                 f"{', '.join(UNIT_OVERRIDE_FIELDS)}", opath)
         if key == "heals":
             if not isinstance(v, bool):

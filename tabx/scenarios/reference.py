@@ -18,9 +18,13 @@ import numpy as np
 
 from tabx import constants as C
 from tabx.scenarios.format import (
+    ARENA_RANGE,
+    MAX_UNITS_PER_TEAM,
+    MAX_ZONES,
     UNIT_STAT_RANGES,
     Scenario,
     ScenarioError,
+    _number,
     read_json,
 )
 
@@ -88,11 +92,17 @@ def _arena(grid: Any) -> tuple[float, float]:
         return (C.ARENA_WIDTH, C.ARENA_HEIGHT)
     if not isinstance(grid, dict) or set(grid) - set(GRID_KEYS):
         raise ScenarioError(f"expected an object with keys {', '.join(GRID_KEYS)}", "grid_info")
-    try:
-        return (float(grid.get("max_field_width", C.ARENA_WIDTH)),
-                float(grid.get("max_field_height", C.ARENA_HEIGHT)))
-    except (TypeError, ValueError):
-        raise ScenarioError("max_field_width/height must be numbers", "grid_info") from None
+    for key in GRID_KEYS:  # the editor's grid settings: not used, but must be numbers
+        if key in grid:
+            _number(grid[key], f"grid_info.{key}")
+    return (_number(grid.get("max_field_width", C.ARENA_WIDTH), "grid_info.max_field_width",
+                    ARENA_RANGE),
+            _number(grid.get("max_field_height", C.ARENA_HEIGHT), "grid_info.max_field_height",
+                    ARENA_RANGE))
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 def _column(s: dict, key: str, n: int, width: int, path: str) -> np.ndarray:
@@ -101,6 +111,10 @@ def _column(s: dict, key: str, n: int, width: int, path: str) -> np.ndarray:
     if boolean and not (isinstance(rows, list) and all(
             isinstance(r, list) and all(isinstance(v, bool) for v in r) for r in rows)):
         raise ScenarioError("expected rows of true/false values", f"{path}.{key}")
+    if not boolean and not (isinstance(rows, list) and all(
+            isinstance(r, list) and all(_is_number(v) for v in r) for r in rows)):
+        raise ScenarioError("expected a list of rows of numbers, e.g. [[1.0], [2.5]]",
+                            f"{path}.{key}")
     try:
         arr = np.asarray(rows, dtype=bool if boolean else np.float64)
     except (TypeError, ValueError, OverflowError):
@@ -127,6 +141,8 @@ def _units(s: Any, arena: tuple[float, float]) -> list[dict[str, Any]]:
     if not isinstance(s["teams"], list):
         raise ScenarioError("expected a list", "scenario.teams")
     n = len(s["teams"])
+    if n > 2 * MAX_UNITS_PER_TEAM:
+        raise ScenarioError(f"at most {2 * MAX_UNITS_PER_TEAM} units, got {n}", "scenario.teams")
     col = {k: _column(s, k, n, 2 if k in ("positions", "pos_min", "pos_max") else 1, "scenario")
            for k in UNIT_COLUMNS}
     units = []
@@ -190,6 +206,8 @@ def _zones(z: Any) -> list[dict[str, Any]]:
     if not isinstance(z["zone_type"], list):
         raise ScenarioError("expected a list", "zone_scenario.zone_type")
     n = len(z["zone_type"])
+    if n > MAX_ZONES:
+        raise ScenarioError(f"at most {MAX_ZONES} zones, got {n}", "zone_scenario.zone_type")
     types = _column(z, "zone_type", n, 1, "zone_scenario")
     centre = _column(z, "position", n, 2, "zone_scenario")
     axes = _column(z, "axes", n, 2, "zone_scenario")
