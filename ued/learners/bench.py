@@ -1,16 +1,15 @@
 """`tabx bench train`: end-to-end training throughput of MAPPO and IPPO.
 
 Protocol (docs/benchmarks.md, "Training throughput"): the paper's defaults (128 envs x 512
-steps per update, 4 epochs of 4 minibatches, hidden 128) on a scenario (default crossfire) against an opponent (default the
-medium heuristic). The first update is timed from the call to its result, compilation
-included; then `--updates` more updates are timed one by one (`block_until_ready`), and the
-steady-state throughput is env steps per update / median seconds per update. A fresh learner is
-built for each algorithm (no compiled function is reused; a persistent compilation cache, if
-the user configured one, is switched off for the run), and the level batch is a jit argument,
-as in training. `--reference-like` trains with the reference's structure instead (see
-`reference_like`), to compare on the same machine at the same moment. `--matmul-dtype` sets
-`learner.matmul_dtype` (default: the config default, bfloat16).
-"""
+steps per update, 4 epochs of 4 minibatches, hidden 128) on a scenario (default crossfire)
+against an opponent (default the medium heuristic). The first update is timed from the call to
+its result, compilation included; then `--updates` more updates are timed one by one
+(`block_until_ready`), and the steady-state throughput is env steps per update / median seconds
+per update. A fresh learner is built for each algorithm (no compiled function is reused; a
+persistent compilation cache, if the user configured one, is switched off for the run), and the
+level batch is a jit argument, as in training. `--reference-like` trains with the reference's
+structure instead (see `reference_like`), to compare on the same machine at the same moment.
+`--matmul-dtype` sets `learner.matmul_dtype` (default: the config default, bfloat16). """
 
 from __future__ import annotations
 
