@@ -25,6 +25,7 @@ DEFAULT_EPISODES = 100  # of `tabx eval` without --suite
 
 def cmd_train(args: argparse.Namespace) -> int:
     from ued.config import ConfigError, load_config
+    from workers.driver import RunStopped
     from workers.train import train
 
     positional = list(args.items)
@@ -37,21 +38,36 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise UserError(f"expected KEY=VALUE overrides after the config, got {bad[0]!r}")
     if args.max_updates is not None and args.max_updates < 1:
         raise UserError(f"--max-updates must be >= 1, got {args.max_updates}")
+    if args.address is not None and not args.ray:
+        raise UserError("--address joins a Ray cluster: give --ray too")
+    ray_overrides = []
+    if args.ray:
+        ray_overrides.append("ray.enabled=true")
+    if args.address is not None:
+        ray_overrides.append(f"ray.address={args.address}")
     try:
         if args.resume:
             if config_path or overrides:
                 raise UserError("--resume continues a run with its own config.yaml: give no "
                                 "config file or overrides")
+            ray = None
+            if ray_overrides:
+                from ued.config import apply_overrides, config_from_dict
+                from ued.run_folder import read_run_config
+
+                own = read_run_config(args.resume).to_dict()
+                ray = config_from_dict(apply_overrides(own, ray_overrides),
+                                       source=f"{args.resume} with --ray").ray
             run_dir = train(run_dir=args.resume, resume=True, max_updates=args.max_updates,
-                            progress=not args.quiet)
+                            progress=not args.quiet, ray=ray)
         else:
             if config_path is None:
                 raise UserError("give a config file (e.g. configs/marl/mappo_crossfire.yaml) "
                                 "or --resume RUN_DIR")
-            config = load_config(config_path, overrides)
+            config = load_config(config_path, [*overrides, *ray_overrides])
             run_dir = train(config, run_dir=args.run_dir, max_updates=args.max_updates,
                             progress=not args.quiet)
-    except ConfigError as err:
+    except (ConfigError, RunStopped) as err:
         raise UserError(str(err)) from None
     print(run_dir)
     return 0
@@ -199,6 +215,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     train.add_argument("--max-updates", type=int,
                        help="stop after this many updates (resume later with --resume)")
     train.add_argument("--quiet", action="store_true", help="no progress line")
+    train.add_argument("--ray", action="store_true",
+                       help="run the UED workers as Ray actors (ray.enabled=true; needs the "
+                            "ray extra): on this machine, or on a cluster with --address")
+    train.add_argument("--address", metavar="ADDRESS",
+                       help="with --ray: join a running Ray cluster (auto, or HOST:PORT)")
     train.set_defaults(func=cmd_train)
 
     ev = subparsers.add_parser(

@@ -116,8 +116,8 @@ def trees_equal(a, b) -> bool:
 @pytest.mark.parametrize("method,grad_on_new", [("robust_plr", False), ("plr", True),
                                                 ("dr", True)])
 def test_gradient_on_new_levels_only_where_the_method_says(method, grad_on_new):
-    run = UEDRun(ued_config(method))
-    learner = Learner(run.learner, run.learner.init(jax.random.key(0)))
+    run, ppo = UEDRun.local(ued_config(method))
+    learner = Learner(ppo, ppo.init(jax.random.key(0)))
     before = params_of(learner)
     branch, metrics, levels = run.step(learner, 0, jax.random.key(1))
     assert branch == Branch.NEW  # an empty buffer is below its minimum fill
@@ -138,7 +138,7 @@ def test_every_method_runs_end_to_end_and_never_recompiles(tmp_path):
             assert steps and steps[-1] == 6, method
 
     run_all(0)
-    learner = UEDRun(ued_config("accel")).learner
+    learner = UEDRun.local(ued_config("accel"))[1]
     sizes = learner._update_jit._cache_size(), learner._score_jit._cache_size()
     with CompileCounter() as cc:
         run_all(1)  # new seeds: other levels, other buffers, other branch sequences
@@ -173,7 +173,7 @@ def test_resume_continues_exactly(tmp_path):
     from ued.checkpoint import Checkpoints
     from ued.run_folder import CHECKPOINT_DIR
 
-    template = UEDRun(config).learner.init(jax.random.key(0))
+    template = UEDRun.local(config)[1].init(jax.random.key(0))
     with Checkpoints(full / CHECKPOINT_DIR) as a, Checkpoints(part / CHECKPOINT_DIR) as b:
         state_a, key_a, step_a = a.restore(template)
         state_b, key_b, step_b = b.restore(template)
@@ -224,7 +224,7 @@ def test_shipped_ued_configs_load_and_their_suites_fit():
         for name in config.ued.eval_suites:
             load_suite(name)
     # The quickstart builds all its workers (the evaluator checks its suite fits the policy).
-    run = UEDRun(load_config(folder / "quickstart.yaml"))
+    run, _ = UEDRun.local(load_config(folder / "quickstart.yaml"))
     assert len(run.evaluators) == 1 and run.service.buffer is not None
 
 

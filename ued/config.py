@@ -1,12 +1,13 @@
 """Training configs: YAML files validated into typed, frozen dataclasses.
 
-A config has five sections and two top-level keys:
+A config has six sections and two top-level keys:
 
     algorithm: mappo          # mappo | ippo
     seed: 0
     env:     {scenario, team, opponent, max_steps}
     learner: {PPO hyperparameters, num_envs, num_steps, total_timesteps}
     run:     {name, dir, checkpoint_every, keep_checkpoints, log_every}
+    ray:     {enabled, address, explorers, staleness bounds, deterministic}  (RaySection)
     ued:     {method, score, buffer and SFL settings, evaluation suites}   (UEDSection)
     levels:  {free parameters and their ranges}                  (ued.levels.LevelSpace)
 
@@ -210,6 +211,35 @@ class UEDSection:
 
 
 @dataclass(frozen=True)
+class RaySection:
+    """Running a UED run's workers as Ray actors (docs/distributed.md). Off by default: the
+    local driver runs everything in one process and Ray is never imported."""
+
+    enabled: bool = False  # tabx train --ray
+    address: str = ""  # "": start Ray on this machine; "auto" or HOST:PORT: join a cluster
+    explorers: int = 1  # Explorer actors scoring new and mutated levels (0: the learner's)
+    max_inflight: int = 2  # batches each Explorer may run ahead of the driver
+    max_policy_lag: int = 4  # a score this many policy versions older is re-scored
+    deterministic: bool = False  # the local driver's schedule, step by step (equal results)
+    learner_gpus: float = -1.0  # GPUs of the learner actor; -1: one if the cluster has any
+    num_cpus: int = 0  # CPUs of a Ray started here (0: Ray's own count)
+    object_store_mb: int = 512  # object store of a Ray started here
+
+    def validate(self, prefix: str = "ray") -> None:
+        _check(self.explorers >= 0, f"{prefix}.explorers",
+               f"must be >= 0 (0: the learner actor scores too), got {self.explorers}")
+        _check(self.max_inflight >= 1, f"{prefix}.max_inflight",
+               f"must be >= 1, got {self.max_inflight}")
+        _check(self.max_policy_lag >= 0, f"{prefix}.max_policy_lag",
+               f"must be >= 0, got {self.max_policy_lag}")
+        _check(self.learner_gpus == -1.0 or self.learner_gpus >= 0, f"{prefix}.learner_gpus",
+               f"must be -1 (auto) or >= 0, got {self.learner_gpus}")
+        _check(self.num_cpus >= 0, f"{prefix}.num_cpus", f"must be >= 0, got {self.num_cpus}")
+        _check(self.object_store_mb >= 64, f"{prefix}.object_store_mb",
+               f"must be >= 64, got {self.object_store_mb}")
+
+
+@dataclass(frozen=True)
 class TrainConfig:
     """A whole training run."""
 
@@ -220,6 +250,7 @@ class TrainConfig:
     run: RunSection = field(default_factory=RunSection)
     ued: UEDSection = field(default_factory=UEDSection)
     levels: LevelSpace = field(default_factory=LevelSpace)
+    ray: RaySection = field(default_factory=RaySection)
 
     def validate(self) -> TrainConfig:
         _check(self.algorithm in ALGORITHMS, "algorithm",
@@ -229,6 +260,10 @@ class TrainConfig:
         self.run.validate()
         self.ued.validate()
         self.levels.validate()
+        self.ray.validate()
+        _check(not self.ray.enabled or self.ued.enabled, "ray.enabled",
+               "the Ray driver runs UED runs (set ued.method); a plain MARL run trains in "
+               "one process")
         if self.ued.enabled and "heuristic" in self.levels.free_params:
             from tabx.controllers import Controller
 
@@ -422,5 +457,5 @@ def apply_overrides(data: Any, overrides: Sequence[str], source: str = "config")
 
 
 __all__ = ["ALGORITHMS", "TEAMS", "UED_METHODS", "UED_SCORES", "ConfigError", "EnvSection",
-           "PPOConfig", "RunSection", "TrainConfig", "UEDSection", "apply_overrides",
+           "PPOConfig", "RaySection", "RunSection", "TrainConfig", "UEDSection", "apply_overrides",
            "config_from_dict", "load_config"]

@@ -27,6 +27,11 @@ from ued.config import TrainConfig
 Callback = Callable[[int, Any, dict[str, float]], None]
 
 
+class RunStopped(RuntimeError):
+    """A run stopped before its end for a reason outside the user's input (a worker died);
+    the message says how to continue it."""
+
+
 class Driver(abc.ABC):
     """Runs (or continues) one training run in its run folder."""
 
@@ -41,4 +46,4 @@ class Driver(abc.ABC):
         `progress` prints a progress line to `stream` (default stderr). Returns `run_dir`."""
 
 
-__all__ = ["Callback", "Driver"]
+__all__ = ["Callback", "Driver", "RunStopped"]

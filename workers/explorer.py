@@ -15,7 +15,7 @@ import numpy as np
 
 from tabx.params import EnvParams
 from ued.learners.ppo import PPOLearner, RolloutStats
-from ued.scores import level_scores
+from ued.scores import learnability, level_scores
 
 
 @partial(jax.jit, static_argnums=1)
@@ -44,13 +44,20 @@ class Explorer:
         """Episode metrics and rollout statistics of the policy on `levels`."""
         return self.learner.score(params, levels, key, num_steps)
 
-    def evaluate(self, params: Any, levels: EnvParams, key: jax.Array,
-                 num_steps: int | None = None, score: str | None = None
-                 ) -> tuple[dict[str, jax.Array], np.ndarray, np.ndarray]:
+    def score_levels(self, params: Any, levels: EnvParams, key: jax.Array,
+                     score: str | None = None, max_returns: Any = None,
+                     num_steps: int | None = None
+                     ) -> tuple[dict[str, jax.Array], np.ndarray, np.ndarray]:
         """(episode metrics, scores, max returns) of `levels` under `params`."""
         metrics, stats = self.rollout(params, levels, key, num_steps)
-        values, best = scores_of(stats, score or self.score)
+        values, best = scores_of(stats, score or self.score, max_returns)
         return metrics, values, best
+
+    def learnability(self, params: Any, levels: EnvParams, key: jax.Array,
+                     num_steps: int | None = None) -> np.ndarray:
+        """SFL's p (1 - p) per level, p the share of finished episodes the team won."""
+        _, stats = self.rollout(params, levels, key, num_steps)
+        return np.asarray(learnability(stats.wins, stats.dones), np.float64)
 
 
 __all__ = ["Explorer", "scores_of"]

@@ -10,9 +10,11 @@ from __future__ import annotations
 from typing import Any
 
 import jax
+import numpy as np
 
 from tabx.params import EnvParams
 from ued.learners.ppo import PPOLearner, RolloutStats, TrainState
+from workers.explorer import scores_of
 
 
 class Learner:
@@ -34,6 +36,15 @@ class Learner:
         self.train_state, metrics, stats = self.learner.update(self.train_state, levels, key)
         self.version += 1
         return metrics, stats
+
+    def train_scored(self, levels: EnvParams, key: jax.Array, score: str,
+                     max_returns: Any = None
+                     ) -> tuple[dict[str, jax.Array], np.ndarray, np.ndarray]:
+        """`train`, then the levels' scores and best returns under the policy that played them
+        (`scores_of`; `max_returns` are the stored R_max of replayed levels)."""
+        metrics, stats = self.train(levels, key)
+        scores, best = scores_of(stats, score, max_returns)
+        return metrics, scores, best
 
 
 __all__ = ["Learner"]

@@ -63,6 +63,7 @@ class LevelService:
                  seed: int = 0, use_buffer: bool = True):
         self.generator = generator
         self.ued = ued
+        self.seed = seed
         self.template = to_host(template_level)
         self.buffer = (LevelBuffer(self.template, buffer_config(ued), seed=seed)
                        if use_buffer else None)
@@ -86,8 +87,22 @@ class LevelService:
         """ACCEL children: `levels.num_edits` edits of each level."""
         return self.generator.mutate(key, to_device(levels))
 
-    def replay_decision(self) -> bool:
+    def mutate_ids(self, key: jax.Array, parent_ids: Any) -> EnvParams:
+        """ACCEL children of the stored levels `parent_ids` (read and edited in one call, so
+        no insert can evict a parent in between)."""
+        return self.mutate(key, self.get(parent_ids))
+
+    def sample_replay_decision(self) -> bool:
+        """Replay (True) or new levels: the buffer's decision (the curriculum asks)."""
         return self._need_buffer().sample_replay_decision()
+
+    def buffer_size(self) -> int | None:
+        """Levels in the buffer (None without one)."""
+        return None if self.buffer is None else len(self.buffer)
+
+    def has_learnable(self) -> bool:
+        """Whether SFL's learnable set holds levels."""
+        return self.learnable is not None and len(self.learnable) > 0
 
     # --- scores in ---------------------------------------------------------------------------
 
@@ -116,7 +131,7 @@ class LevelService:
         chosen = jax.tree.map(lambda x: np.asarray(x)[order], to_host(levels))
         learnable = LevelBuffer(self.template, BufferConfig(capacity=k, duplicate_check=False,
                                                             minimum_fill_ratio=0.0),
-                                seed=None)
+                                seed=self.seed)  # seeded: the saved set is reproducible
         # -inf (no episode ended) would be refused by the buffer: keep such levels at a score
         # below every real learnability instead, so the set always has k levels.
         kept = np.where(np.isfinite(scores[order]), scores[order], -1.0)

@@ -46,43 +46,66 @@ from ued.learners.ppo import PPOLearner
 from ued.levels import LevelGenerator
 from ued.progress import Progress, ThroughputClock, log_update
 from ued.run_folder import EVENTS_DIR, LEVELS_DIR, open_checkpoints
-from ued.scores import learnability
 from ued.suites import load_suite
 from ued.tensorboard import SummaryWriter
 from workers.driver import Callback, Driver
 from workers.evaluator import Evaluator
-from workers.explorer import Explorer, scores_of
+from workers.explorer import Explorer
 from workers.learner import Learner
 from workers.level_service import LevelService, to_device, to_host
 
 
-class UEDRun:
-    """The workers of one UED run, wired for local (single-process) use."""
+def level_service_for(config: TrainConfig, learner: PPOLearner) -> LevelService:
+    """The LevelService of a UED config: its generator starts from the config's scenarios,
+    prepared by `learner` (so the opponent's tier is written into them)."""
+    env_config, base_levels = scenario_levels(config)
+    # The base levels carry the opponent's tier, so generated levels start from it.
+    base = learner.prepare_levels(jax.tree.map(jnp.asarray, stack_levels(base_levels)))
+    generator = LevelGenerator(env_config, base, config.levels)
+    ued = config.ued
+    template = jax.tree.map(lambda x: np.asarray(x)[0], base)
+    uses_buffer = make_curriculum(ued.method, ued.exploratory_grad_updates,
+                                  ued.sfl_update_freq).uses_buffer
+    return LevelService(generator, template, ued, seed=config.seed, use_buffer=uses_buffer)
 
-    def __init__(self, config: TrainConfig):
+
+def evaluators_for(config: TrainConfig, learner: PPOLearner) -> list[Evaluator]:
+    """One Evaluator per zero-shot suite of `ued.eval_suites`."""
+    episodes = config.ued.eval_episodes or None
+    return [Evaluator(learner, load_suite(name), episodes=episodes)
+            for name in config.ued.eval_suites]
+
+
+def local_workers(config: TrainConfig) -> tuple[PPOLearner, LevelService, Explorer,
+                                               list[Evaluator]]:
+    """The learner, LevelService, Explorer and Evaluators of a UED config, built in this
+    process."""
+    learner = learner_for(config, scenario_levels(config)[0])
+    return (learner, level_service_for(config, learner), Explorer(learner, config.ued.score),
+            evaluators_for(config, learner))
+
+
+class UEDRun:
+    """One UED run's step logic over its workers: the curriculum decides, the LevelService
+    hands out and takes back levels, the Learner trains, the Explorer scores. The workers are
+    the local classes (the local driver) or stand-ins with the same methods that call Ray
+    actors (the Ray driver), so both drivers take every decision the same way."""
+
+    def __init__(self, config: TrainConfig, service: Any, explorer: Any,
+                 evaluators: list[Any] = ()):
         self.config = config
-        env_config, base_levels = scenario_levels(config)
-        self.env_config = env_config
-        self.learner: PPOLearner = learner_for(config, env_config)
-        # The base levels carry the opponent's tier, so generated levels start from it.
-        base = self.learner.prepare_levels(jax.tree.map(jnp.asarray, stack_levels(base_levels)))
-        self.generator = LevelGenerator(env_config, base, config.levels)
         ued = config.ued
         self.curriculum: Curriculum = make_curriculum(ued.method, ued.exploratory_grad_updates,
                                                       ued.sfl_update_freq)
-        template = jax.tree.map(lambda x: np.asarray(x)[0], base)
-        self.service = LevelService(self.generator, template, ued, seed=config.seed,
-                                    use_buffer=self.curriculum.uses_buffer)
-        self.explorer = Explorer(self.learner, ued.score)
-        self.evaluators = self._evaluators()
+        self.service, self.explorer, self.evaluators = service, explorer, list(evaluators)
         self.sfl_scoring_steps = 0
 
-    def _evaluators(self) -> list[Evaluator]:
-        if not self.config.ued.eval_suites:
-            return []
-        episodes = self.config.ued.eval_episodes or None
-        return [Evaluator(self.learner, load_suite(name), episodes=episodes)
-                for name in self.config.ued.eval_suites]
+    @classmethod
+    def local(cls, config: TrainConfig) -> tuple[UEDRun, PPOLearner]:
+        """A run over workers built in this process, and its learner (to init or restore the
+        train state that a `workers.learner.Learner` holds)."""
+        ppo_learner, service, explorer, evaluators = local_workers(config)
+        return cls(config, service, explorer, evaluators), ppo_learner
 
     # --- one step ----------------------------------------------------------------------------
 
@@ -90,52 +113,82 @@ class UEDRun:
              ) -> tuple[Branch, dict[str, Any], EnvParams]:
         """Run one curriculum step; returns its branch, its metrics (device values) and the
         levels it played."""
-        n = self.config.learner.num_envs
-        k_levels, k_roll, k_edit = jax.random.split(key, 3)
-        service, curriculum = self.service, self.curriculum
-        branch = curriculum.next_branch(service.buffer)
+        keys = jax.random.split(key, 3)  # levels, rollout, edits
+        curriculum = self.curriculum
+        branch = self.next_branch()
         learns = curriculum.learns(branch)
-        version = learner.version  # the policy that plays (and so scores) this step's levels
         replay_ids = None
-        if branch == Branch.NEW:
-            levels = service.fresh(k_levels, n)
-            metrics, stats = self._play(learner, levels, k_roll, learns)
-            if service.buffer is not None:
-                scores, best = scores_of(stats, self.config.ued.score)
-                service.insert(levels, scores, best, version, Source.RANDOM)
-        elif branch == Branch.REPLAY:
-            replay = service.replay(n)
-            levels = to_device(replay.levels)
-            metrics, stats = self._play(learner, levels, k_roll, True)
-            scores, best = scores_of(stats, self.config.ued.score, replay.max_returns)
-            service.update(replay.ids, scores, best, version)
-            replay_ids = replay.ids
-        elif branch == Branch.MUTATE:
-            parent_ids = np.asarray(curriculum.last_replay_ids, np.int64)
-            levels = service.mutate(k_edit, service.get(parent_ids))
-            metrics, stats = self._play(learner, levels, k_roll, learns)
-            scores, best = scores_of(stats, self.config.ued.score)
-            service.insert(levels, scores, best, version, Source.MUTATION,
-                           parent_ids=parent_ids)
-        elif branch == Branch.SFL:
-            assert isinstance(curriculum, SFL)
-            if curriculum.needs_refresh(step) or service.learnable is None:
-                self.refresh_learnable(learner, k_edit)
-            levels = self.sfl_batch(k_levels, n)
-            metrics, stats = self._play(learner, levels, k_roll, True)
-        else:  # pragma: no cover - Branch is closed
-            raise AssertionError(branch)
+        if learns:
+            metrics, levels, replay_ids = self.learning_step(learner, branch, step, keys)
+        else:
+            metrics, levels = self.exploring_step(learner, branch, keys)
         curriculum.observe(branch, replay_ids)
+        return branch, self.step_metrics(metrics, branch, learns, learner.version), levels
+
+    def next_branch(self) -> Branch:
+        return self.curriculum.next_branch(self.service if self.curriculum.uses_buffer
+                                           else None)
+
+    @staticmethod
+    def step_metrics(metrics: dict[str, Any], branch: Branch, learns: bool, version: int
+                     ) -> dict[str, Any]:
         metrics = dict(metrics)
         metrics["ued/branch"] = float(branch)
         metrics["ued/grad_step"] = float(learns)
-        metrics["ued/policy_version"] = float(learner.version)
-        return branch, metrics, levels
+        metrics["ued/policy_version"] = float(version)
+        return metrics
 
-    def _play(self, learner: Learner, levels: EnvParams, key: jax.Array, learns: bool):
-        if learns:
-            return learner.train(levels, key)
-        return self.explorer.rollout(learner.params, levels, key)
+    def learning_step(self, learner: Learner, branch: Branch, step: int, keys: jax.Array
+                      ) -> tuple[dict[str, Any], EnvParams, np.ndarray | None]:
+        """A step that trains the policy: (metrics, levels played, replayed ids or None)."""
+        k_levels, k_roll, k_edit = keys
+        n, score = self.config.learner.num_envs, self.config.ued.score
+        service = self.service
+        version = learner.version  # the policy that plays (and so scores) this step's levels
+        if branch == Branch.REPLAY:
+            replay = service.replay(n)
+            levels = to_device(replay.levels)
+            metrics, scores, best = learner.train_scored(levels, k_roll, score,
+                                                         replay.max_returns)
+            service.update(replay.ids, scores, best, version)
+            return metrics, levels, replay.ids
+        if branch == Branch.SFL:
+            assert isinstance(self.curriculum, SFL)
+            if self.curriculum.needs_refresh(step) or not service.has_learnable():
+                self.refresh_learnable(learner, k_edit)
+            levels = self.sfl_batch(k_levels, n)
+            metrics, _ = learner.train(levels, k_roll)
+            return metrics, levels, None
+        # NEW (DR; PLR's exploratory gradient updates) or MUTATE with gradient updates.
+        levels, source, parent_ids = self.new_levels(branch, k_levels, k_edit)
+        if self.curriculum.uses_buffer:
+            metrics, scores, best = learner.train_scored(levels, k_roll, score)
+            service.insert(levels, scores, best, version, source, parent_ids=parent_ids)
+        else:
+            metrics, _ = learner.train(levels, k_roll)
+        return metrics, levels, None
+
+    def exploring_step(self, learner: Learner, branch: Branch, keys: jax.Array
+                       ) -> tuple[dict[str, Any], EnvParams]:
+        """A step that only scores new or mutated levels (Robust PLR, ACCEL) and offers them to
+        the buffer: (episode metrics, levels played)."""
+        k_levels, k_roll, k_edit = keys
+        version = learner.version
+        levels, source, parent_ids = self.new_levels(branch, k_levels, k_edit)
+        metrics, scores, best = self.explorer.score_levels(learner.params, levels, k_roll,
+                                                           self.config.ued.score)
+        self.service.insert(levels, scores, best, version, source, parent_ids=parent_ids)
+        return metrics, levels
+
+    def new_levels(self, branch: Branch, k_levels: jax.Array, k_edit: jax.Array
+                   ) -> tuple[EnvParams, Source, Any]:
+        """Fresh levels (NEW) or ACCEL children of the last replay batch (MUTATE), with their
+        buffer source and parent ids."""
+        if branch == Branch.NEW:
+            return self.service.fresh(k_levels, self.config.learner.num_envs), Source.RANDOM, -1
+        assert branch == Branch.MUTATE, branch
+        parent_ids = np.asarray(self.curriculum.last_replay_ids, np.int64)
+        return self.service.mutate_ids(k_edit, parent_ids), Source.MUTATION, parent_ids
 
     def sfl_batch(self, key: jax.Array, n: int) -> EnvParams:
         """SFL's training batch: fresh random levels and levels of the learnable set."""
@@ -158,13 +211,27 @@ class UEDRun:
         for b in range(ued.sfl_num_batches):
             k_levels, k_roll = jax.random.split(jax.random.fold_in(key, b))
             levels = self.service.fresh(k_levels, ued.sfl_batch_size)
-            _, stats = self.explorer.rollout(learner.params, levels, k_roll,
-                                             ued.sfl_rollout_steps)
+            scores_all.append(self.explorer.learnability(learner.params, levels, k_roll,
+                                                         ued.sfl_rollout_steps))
             levels_all.append(to_host(levels))
-            scores_all.append(np.asarray(learnability(stats.wins, stats.dones), np.float64))
             self.sfl_scoring_steps += ued.sfl_batch_size * ued.sfl_rollout_steps
         levels = jax.tree.map(lambda *xs: np.concatenate(xs), *levels_all)
         self.service.set_learnable(levels, np.concatenate(scores_all), ued.sfl_top_k)
+
+    # --- evaluation --------------------------------------------------------------------------
+
+    def evaluate(self, learner: Learner, writer: SummaryWriter, done: int,
+                 stream: TextIO | None) -> None:
+        """Every evaluation suite on the current policy, logged at step `done`."""
+        config = self.config
+        key = jax.random.fold_in(jax.random.key(config.seed ^ 0x5EED), done)
+        for i, evaluator in enumerate(self.evaluators):
+            result = evaluator.evaluate(learner.params, jax.random.fold_in(key, i))
+            evaluator.log(writer, done * config.learner.steps_per_update, result)
+            if stream is not None:
+                stream.write(f"  eval {evaluator.suite.name} after step {done}: mean win rate "
+                             f"{result.mean_win_rate:.2f}\n")
+                stream.flush()
 
     # --- state -------------------------------------------------------------------------------
 
@@ -268,12 +335,12 @@ def train_ued(config: TrainConfig, run_dir: Path, *, resume: bool = False,
     `max_updates` stops after that many steps in this call; `callback(step, train_state,
     metrics)` runs after every logged step with host metrics."""
     stream = sys.stderr if stream is None else stream
-    run = UEDRun(config)
+    run, ppo_learner = UEDRun.local(config)
     ppo = config.learner
     total = ppo.num_updates
     key = jax.random.key(config.seed)
     key, k_init = jax.random.split(key)
-    train_state = run.learner.init(k_init)
+    train_state = ppo_learner.init(k_init)
     start, version = 0, 0
     levels_dir = run_dir / LEVELS_DIR
     checkpoints = open_checkpoints(run_dir, config)
@@ -283,7 +350,7 @@ def train_ued(config: TrainConfig, run_dir: Path, *, resume: bool = False,
             version = run.load_state(run.service.load(levels_dir, start))
         except FileNotFoundError as err:
             raise ConfigError(f"{run_dir}: cannot resume: {err}") from None
-    learner = Learner(run.learner, train_state, version)
+    learner = Learner(ppo_learner, train_state, version)
     stop = total if max_updates is None else min(total, start + max_updates)
     bar = Progress(total, stream) if progress else None
     if progress:
@@ -315,9 +382,9 @@ def train_ued(config: TrainConfig, run_dir: Path, *, resume: bool = False,
                     metrics["sfl/scoring_env_steps"] = float(run.sfl_scoring_steps)
                 log_update(writer, bar, callback, done, learner.train_state, metrics,
                            ppo.steps_per_update, rate, total, last,
-                           extra=_branch_text(counts, run.service))
+                           extra=branch_text(counts, run.service.buffer_size()))
             if run.evaluators and (done % config.ued.eval_every == 0 or last):
-                _evaluate(run, learner, writer, done, config, stream if progress else None)
+                run.evaluate(learner, writer, done, stream if progress else None)
             if done % config.run.checkpoint_every == 0 or last:
                 # The level snapshot first: a checkpoint without one cannot be resumed.
                 run.service.save(levels_dir, done, run.state(learner),
@@ -329,23 +396,14 @@ def train_ued(config: TrainConfig, run_dir: Path, *, resume: bool = False,
     return run_dir
 
 
-def _branch_text(counts: dict[Branch, int], service: LevelService) -> str:
+def branch_text(counts: dict[Branch, int], buffer_size: int | None) -> str:
+    """The progress line's account of a UED run: steps per branch, the buffer's size."""
     parts = [f"{b.name.lower()} {n}" for b, n in counts.items() if n]
-    if service.buffer is not None:
-        parts.append(f"buffer {len(service.buffer)}")
+    if buffer_size is not None:
+        parts.append(f"buffer {buffer_size}")
     return ", ".join(parts)
 
 
-def _evaluate(run: UEDRun, learner: Learner, writer: SummaryWriter, done: int,
-              config: TrainConfig, stream: TextIO | None) -> None:
-    key = jax.random.fold_in(jax.random.key(config.seed ^ 0x5EED), done)
-    for i, evaluator in enumerate(run.evaluators):
-        result = evaluator.evaluate(learner.params, jax.random.fold_in(key, i))
-        evaluator.log(writer, done * config.learner.steps_per_update, result)
-        if stream is not None:
-            stream.write(f"  eval {evaluator.suite.name} after step {done}: mean win rate "
-                         f"{result.mean_win_rate:.2f}\n")
-            stream.flush()
-
-
-__all__ = ["LocalDriver", "UEDRun", "level_summary", "train_marl", "train_ued"]
+__all__ = ["LocalDriver", "UEDRun", "branch_text", "evaluators_for", "level_service_for",
+           "level_summary", "local_workers",
+           "train_marl", "train_ued"]

@@ -7,38 +7,45 @@ run to a driver (`workers.driver`).
 
 New run: `config` is required; the folder is `run_dir` if given (it must not hold a run yet),
 else a fresh one under `config.run.dir` (`ued.run_folder`). Resume: `resume=True` with
-`run_dir`; the config is the run's own `config.yaml`. The persistent compilation cache is
-switched on per `run.compile_cache` before anything compiles.
+`run_dir`; the config is the run's own `config.yaml`, with `ray` (if given) in place of its
+`ray:` section, so a run can continue on another machine or cluster, with another number of
+Explorers. The persistent compilation cache is switched on per `run.compile_cache` before
+anything compiles.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import TextIO
 
 from ued import compile_cache
-from ued.config import ConfigError, TrainConfig
+from ued.config import ConfigError, RaySection, TrainConfig
 from ued.experiment import check_devices
 from ued.run_folder import create_run_dir, read_run_config
 from workers.driver import Callback, Driver
 from workers.local import LocalDriver
+from workers.ray_driver import RayDriver
 
 
 def driver_for(config: TrainConfig) -> Driver:
-    """The driver a config asks for."""
-    return LocalDriver()
+    """The driver a config asks for: Ray's with `ray.enabled`, else the local one."""
+    return RayDriver() if config.ray.enabled else LocalDriver()
 
 
 def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = None,
           resume: bool = False, max_updates: int | None = None, progress: bool = True,
           stream: TextIO | None = None, callback: Callback | None = None,
-          driver: Driver | None = None) -> Path:
-    """Train; returns the run folder. `driver` overrides the one the config asks for."""
+          driver: Driver | None = None, ray: RaySection | None = None) -> Path:
+    """Train; returns the run folder. `driver` overrides the one the config asks for; `ray`
+    replaces a resumed run's `ray:` section."""
     if resume:
         if run_dir is None:
             raise ConfigError("resume needs the run folder")
         run_dir = Path(run_dir)
         config = read_run_config(run_dir)
+        if ray is not None:
+            config = dataclasses.replace(config, ray=ray).validate()
     elif config is None:
         raise ConfigError("a new run needs a config")
     check_devices(config)  # before a new run's folder exists

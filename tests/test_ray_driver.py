@@ -1,0 +1,136 @@
+"""The Ray driver on one machine: its deterministic mode equals the local driver (parameters and
+level-buffer files, Robust PLR, ACCEL and SFL), its asynchronous mode bounds staleness and
+commits every issued batch exactly once, and the local mode never imports Ray.
+
+One Ray (3 logical CPUs) serves the module; runs use the UED tests' tiny config (2 archers v 1
+farmer, 4 envs x 16 steps), so each run costs its actors' start-up and compilation, seconds.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import subprocess
+import sys
+
+os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+import ray  # noqa: E402
+from test_ued_train import ued_config  # noqa: E402
+
+from level_buffer import LevelBuffer  # noqa: E402
+from ued.checkpoint import Checkpoints  # noqa: E402
+from ued.config import ConfigError  # noqa: E402
+from ued.run_folder import CHECKPOINT_DIR, LEVELS_DIR  # noqa: E402
+from workers.local import UEDRun  # noqa: E402
+from workers.ray_driver import RAY_RECORD  # noqa: E402
+from workers.train import train  # noqa: E402
+
+STEPS = 6
+
+
+@pytest.fixture(scope="module", autouse=True)
+def local_ray():
+    # Three logical CPUs (on two cores): a learner and two Explorers each reserve one.
+    ray.init(num_cpus=3, include_dashboard=False, object_store_memory=128 * 2**20,
+             logging_level="ERROR")
+    yield
+    ray.shutdown()
+
+
+def ray_config(method: str, **overrides):
+    return ued_config(method, **{"ray.enabled": "true", **overrides})
+
+
+def final_state(run_dir, config):
+    template = UEDRun.local(config)[1].init(jax.random.key(0))
+    with Checkpoints(run_dir / CHECKPOINT_DIR) as checkpoints:
+        state, key, step = checkpoints.restore(template)
+    return state, jax.random.key_data(key), step
+
+
+def trees_equal(a, b) -> bool:
+    return all(np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b),
+                                                    strict=True))
+
+
+@pytest.mark.parametrize("method", ["robust_plr", "accel", "sfl"])
+def test_deterministic_mode_equals_the_local_driver(tmp_path, method):
+    local = train(ued_config(method), run_dir=tmp_path / "local", stream=io.StringIO(),
+                  max_updates=STEPS)
+    remote = train(ray_config(method, **{"ray.deterministic": "true", "ray.explorers": 2}),
+                   run_dir=tmp_path / "ray", stream=io.StringIO(), max_updates=STEPS)
+    state_a, key_a, step_a = final_state(local, ued_config(method))
+    state_b, key_b, step_b = final_state(remote, ued_config(method))
+    assert step_a == step_b == STEPS
+    assert trees_equal(state_a.params, state_b.params)
+    assert trees_equal(state_a.opt_state, state_b.opt_state)
+    assert np.array_equal(key_a, key_b)
+    snapshots = sorted(p.name for p in (local / LEVELS_DIR).iterdir())
+    assert snapshots == sorted(p.name for p in (remote / LEVELS_DIR).iterdir())
+    assert any(name.endswith(".msgpack") for name in snapshots)  # a buffer or SFL's set
+    for name in snapshots:  # buffer, SFL's learnable set, curriculum state: byte for byte
+        assert (local / LEVELS_DIR / name).read_bytes() == (remote / LEVELS_DIR / name
+                                                            ).read_bytes(), name
+    record = json.loads((remote / RAY_RECORD).read_text())
+    assert record["mode"] == "deterministic" and set(record["placement"]) == {
+        "service", "learner", "explorer-0", "explorer-1"}
+
+
+def test_asynchronous_mode_bounds_staleness_and_commits_every_batch_once(tmp_path):
+    # Half the steps train on replayed levels while the Explorer scores new ones ahead, and no
+    # lag is allowed: any score whose policy moved on before it came back must be re-scored.
+    config = ray_config("robust_plr", **{"ray.max_policy_lag": 0, "ray.max_inflight": 2,
+                                         "ued.replay_prob": 0.5, "ued.buffer_size": 32,
+                                         "ued.min_fill_ratio": 0.25, "ray.explorers": 1})
+    out = io.StringIO()
+    run_dir = train(config, run_dir=tmp_path / "async", stream=out, max_updates=8)
+    record = json.loads((run_dir / RAY_RECORD).read_text())
+    assert record["mode"] == "asynchronous"
+    assert set(record["staleness"]) <= {"0"}  # nothing older than max_policy_lag committed
+    assert record["ledger"] == {"committed": 8}  # every issued batch committed
+    new = record["branches"]["new"]
+    assert record["committed_batches"] == new and new >= 2
+    buffer = LevelBuffer.load(run_dir / LEVELS_DIR / "buffer-8.msgpack")
+    # Each committed batch offered its 4 levels once: no batch lost, none counted twice.
+    assert buffer.stats["insert_attempts"] == 4 * new
+    versions = buffer.column("policy_version")
+    assert versions.min() >= 0 and versions.max() <= record["branches"]["replay"]
+    assert "explorers 1" in out.getvalue() and "trained" in out.getvalue()
+
+
+def test_zero_explorers_score_on_the_learner(tmp_path):
+    config = ray_config("accel", **{"ray.explorers": 0})
+    run_dir = train(config, run_dir=tmp_path / "zero", stream=io.StringIO(), max_updates=5)
+    record = json.loads((run_dir / RAY_RECORD).read_text())
+    assert set(record["placement"]) == {"service", "learner"}
+    assert record["committed_batches"] == record["branches"]["new"] + record["branches"][
+        "mutate"]
+
+
+def test_ray_settings_are_checked():
+    with pytest.raises(ConfigError, match="ray.enabled: the Ray driver runs UED runs"):
+        ued_config("none", **{"ray.enabled": "true"})
+    with pytest.raises(ConfigError, match="ray.max_inflight: must be >= 1"):
+        ray_config("dr", **{"ray.max_inflight": 0})
+    with pytest.raises(ConfigError, match="ray.learner_gpus"):
+        ray_config("dr", **{"ray.learner_gpus": -2})
+
+
+def test_a_run_that_cannot_be_placed_is_refused(tmp_path):
+    # 5 Explorers and a learner on a 3-CPU Ray would wait for ever: say so instead.
+    with pytest.raises(ConfigError, match="reserve 6 CPUs, but this Ray has 3"):
+        train(ray_config("robust_plr", **{"ray.explorers": 5}), run_dir=tmp_path / "big",
+              stream=io.StringIO(), max_updates=1)
+
+
+def test_the_local_mode_never_imports_ray():
+    code = ("import sys; import workers.train, tabx_ued.cli; "
+            "assert 'ray' not in sys.modules, 'ray imported'")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]

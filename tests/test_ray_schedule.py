@@ -1,0 +1,102 @@
+"""The Ray driver's asynchronous schedule, run in this process over a stand-in for Ray whose
+results are late on purpose: a score whose policy moved on by more than `ray.max_policy_lag`
+versions is re-scored, never committed; every issued batch is committed exactly once.
+
+The stand-in (`SlowRay`) runs each actor call at once but reports it ready only when the
+driver blocks for it, so Explorer batches pile up to `ray.max_inflight` while the learner
+trains: the stalest case the real cluster can produce, made deterministic. Ray is not needed.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import numpy as np
+import pytest
+from test_ued_train import ued_config
+
+from ued.curricula import Branch
+from workers.actors import ExplorerActor, LearnerActor, LevelServiceActor
+from workers.local import UEDRun
+from workers.ray_driver import AsyncRun, Blocking, ExplorerPool, RemoteLearner, Workers
+
+
+class Ref:
+    def __init__(self, value: Any):
+        self.value = value
+
+
+class Actor:
+    """An in-process object behind an actor handle: `handle.method.remote(...)` runs now."""
+
+    def __init__(self, obj: Any):
+        self._obj = obj
+
+    def __getattr__(self, name: str) -> Any:
+        method = getattr(self._obj, name)
+
+        class Method:
+            @staticmethod
+            def remote(*args: Any, **kwargs: Any) -> Ref:
+                # Like Ray, a ref passed as an argument arrives as its value.
+                args = tuple(a.value if isinstance(a, Ref) else a for a in args)
+                return Ref(method(*args, **kwargs))
+
+        return Method
+
+
+class SlowRay:
+    """`ray.get` and `ray.wait`, with nothing ready unless the caller blocks."""
+
+    def get(self, ref: Ref | list[Ref]) -> Any:
+        return [r.value for r in ref] if isinstance(ref, list) else ref.value
+
+    def wait(self, refs: list[Ref], num_returns: int = 1, timeout: float | None = None):
+        if timeout == 0:
+            return [], refs
+        return refs[:num_returns], refs[num_returns:]
+
+
+def run_async(max_policy_lag: int, steps: int = 14):
+    config = ued_config("robust_plr", **{
+        "ray.enabled": "true", "ray.explorers": 1, "ray.max_inflight": 2,
+        "ray.max_policy_lag": max_policy_lag, "ued.replay_prob": 0.5, "ued.buffer_size": 32,
+        "ued.min_fill_ratio": 0.25})
+    ray = SlowRay()
+    learner_actor, explorer_actor = LearnerActor(config), ExplorerActor(config)
+    explorer_actor.cache.fetch = ray.get
+    workers = Workers(Actor(LevelServiceActor(config)), Actor(learner_actor),
+                      [Actor(explorer_actor)], None, 0.0)
+    learner_actor.init(jax.random.key(0))
+    run = UEDRun(config, Blocking(ray, workers.service), ExplorerPool(ray, workers.scorers()),
+                 [])
+    schedule = AsyncRun(ray, config, run, RemoteLearner(ray, workers.learner), workers)
+    key = jax.random.key(config.seed)
+    branches = []
+    for step in range(steps):
+        key, k_step = jax.random.split(key)
+        branches.append(schedule.step(step, k_step)[0])
+        assert all(n <= config.ray.max_inflight for n in schedule.inflight)
+    schedule.drain()
+    return schedule, branches, workers.service._obj
+
+
+@pytest.mark.parametrize("max_policy_lag", [0, 100])
+def test_stale_scores_are_rescored_and_every_batch_committed_once(max_policy_lag):
+    schedule, branches, service = run_async(max_policy_lag)
+    new = branches.count(Branch.NEW)
+    replay = branches.count(Branch.REPLAY)
+    assert new + replay == len(branches) and replay >= 2  # the learner moved on meanwhile
+    assert schedule.ledger == dict.fromkeys(range(len(branches)), "committed")
+    assert schedule.stats.committed == new
+    # Each committed batch offered its 4 levels once: none lost, none counted twice.
+    assert service.buffer.stats["insert_attempts"] == 4 * new
+    lags = set(schedule.stats.staleness)
+    assert max(lags) <= max_policy_lag
+    if max_policy_lag == 0:
+        assert lags == {0} and schedule.stats.rescored >= 1
+    else:  # late results are committed as they are, their lag counted
+        assert schedule.stats.rescored == 0 and max(lags) >= 1
+    versions = service.buffer.column("policy_version")
+    assert np.all(versions <= schedule.learner.version)

@@ -1,0 +1,187 @@
+"""The Ray actors of a UED run: the local worker classes, built inside each actor's process.
+
+These are plain classes; the Ray driver (`workers.ray_driver`) makes them actors with
+`ray.remote(cls).options(...)`, so this module imports nothing of Ray and each actor builds its
+own part of the run from the config (no JAX object crosses a process boundary). What crosses:
+
+    levels               numpy pytrees (`to_host`), as arguments or return values
+    keys                 JAX key arrays (a few bytes, pickled)
+    scores, metrics      numpy arrays and floats
+    policy parameters    a `ParamsRef`: the version and a ref to the numpy parameters, fetched
+                         from the learner once per version by the driver; an Explorer pulls
+                         them only when the version is newer than the one it holds
+
+An actor method that returns levels returns them on the host, so the driver (which owns the
+returned object) can hand the ref to any other actor.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from tabx.params import EnvParams
+from ued import compile_cache
+from ued.config import TrainConfig
+from ued.experiment import learner_for
+from ued.learners.ppo import PPOLearner
+from workers.explorer import Explorer
+from workers.learner import Learner
+from workers.level_service import LevelService, to_device, to_host
+from workers.local import evaluators_for, level_service_for
+
+
+@dataclass(frozen=True)
+class ParamsRef:
+    """Policy parameters of one version: `ref` holds one ObjectRef in a list, so that Ray
+    passes the ref itself (not its value) and the receiver fetches it only when it must."""
+
+    version: int
+    ref: list[Any]
+
+
+class ActorBase:
+    """What every actor of a run shares: the compilation cache switched on as the run asks (so
+    a restarted actor reloads its programs rather than compiling them), a readiness call, and
+    the node it runs on."""
+
+    def __init__(self, config: TrainConfig):
+        compile_cache.enable(config.run.compile_cache)
+
+    def ready(self) -> bool:
+        return True
+
+    def node(self) -> str:
+        import ray
+
+        return ray.get_runtime_context().get_node_id()
+
+
+class ParamsCache:
+    """The parameters an actor plays with: pulled (and put on its device) when newer.
+    `fetch` resolves the ref (`ray.get`; a test may hand in its own)."""
+
+    def __init__(self, fetch: Callable[[Any], Any] | None = None) -> None:
+        self.version = -1
+        self.params: Any = None
+        self.fetch = fetch
+
+    def get(self, params: ParamsRef | Any) -> Any:
+        if not isinstance(params, ParamsRef):
+            return params  # already the parameters (in-process use)
+        if params.version != self.version:
+            fetch = self.fetch
+            if fetch is None:
+                import ray
+
+                fetch = ray.get
+            self.params = jax.tree.map(jnp.asarray, fetch(params.ref[0]))
+            self.version = params.version
+        return self.params
+
+
+class LevelServiceActor(LevelService, ActorBase):
+    """The LevelService: the only writer of the buffer. Levels go out on the host."""
+
+    def __init__(self, config: TrainConfig):
+        ActorBase.__init__(self, config)
+        built = level_service_for(config, learner_for(config))
+        super().__init__(built.generator, built.template, config.ued, seed=config.seed,
+                         use_buffer=built.buffer is not None)
+
+    def fresh(self, key: jax.Array, n: int) -> EnvParams:
+        return to_host(super().fresh(key, n))
+
+    def mutate_ids(self, key: jax.Array, parent_ids: Any) -> EnvParams:
+        return to_host(super().mutate_ids(key, parent_ids))
+
+    def sample_learnable(self, key: jax.Array, n: int) -> EnvParams:
+        return to_host(super().sample_learnable(key, n))
+
+
+class ExplorerActor(ActorBase):
+    """Scores levels with the newest policy it was handed (Robust PLR, ACCEL, SFL)."""
+
+    def __init__(self, config: TrainConfig, learner: PPOLearner | None = None):
+        super().__init__(config)
+        self.learner = learner if learner is not None else learner_for(config)
+        self.explorer = Explorer(self.learner, config.ued.score)
+        self.cache = ParamsCache()
+
+    def score_levels(self, params: ParamsRef, levels: EnvParams, key: jax.Array, score: str,
+                     max_returns: Any = None, num_steps: int | None = None
+                     ) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
+        metrics, scores, best = self.explorer.score_levels(
+            self.cache.get(params), to_device(levels), key, score, max_returns, num_steps)
+        return _host_metrics(metrics), scores, best
+
+    def learnability(self, params: ParamsRef, levels: EnvParams, key: jax.Array,
+                     num_steps: int | None = None) -> np.ndarray:
+        return self.explorer.learnability(self.cache.get(params), to_device(levels), key,
+                                          num_steps)
+
+
+class LearnerActor(ExplorerActor):
+    """The one learner: holds the train state and counts policy versions. It can also score
+    (`ray.explorers: 0`), with its own parameters."""
+
+    def __init__(self, config: TrainConfig):
+        super().__init__(config)
+        self.state: Learner | None = None
+
+    def init(self, key: jax.Array) -> None:
+        self.state = Learner(self.learner, self.learner.init(key))
+
+    def _learner(self) -> Learner:
+        if self.state is None:
+            raise RuntimeError("the learner actor has no train state: call init first")
+        return self.state
+
+    def train(self, levels: EnvParams, key: jax.Array) -> dict[str, float]:
+        metrics, _ = self._learner().train(to_device(levels), key)
+        return _host_metrics(metrics)
+
+    def train_scored(self, levels: EnvParams, key: jax.Array, score: str,
+                     max_returns: Any = None
+                     ) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
+        metrics, scores, best = self._learner().train_scored(to_device(levels), key, score,
+                                                             max_returns)
+        return _host_metrics(metrics), scores, best
+
+    def params(self) -> Any:
+        """The current parameters as numpy (the driver owns the returned object)."""
+        return jax.device_get(self._learner().params)
+
+    def version(self) -> int:
+        return self._learner().version
+
+    def train_state(self) -> Any:
+        return jax.device_get(self._learner().train_state)
+
+    def set_train_state(self, train_state: Any, version: int) -> None:
+        self.state = Learner(self.learner, jax.tree.map(jnp.asarray, train_state), version)
+
+
+class EvaluatorActor(ActorBase):
+    """The zero-shot evaluation suites of the config, one Evaluator each."""
+
+    def __init__(self, config: TrainConfig):
+        super().__init__(config)
+        self.evaluators = evaluators_for(config, learner_for(config))
+        self.cache = ParamsCache()
+
+    def evaluate(self, index: int, params: ParamsRef, key: jax.Array) -> Any:
+        return self.evaluators[index].evaluate(self.cache.get(params), key)
+
+
+def _host_metrics(metrics: dict[str, Any]) -> dict[str, float]:
+    return {k: np.asarray(v) for k, v in jax.device_get(metrics).items()}
+
+
+__all__ = ["ActorBase", "EvaluatorActor", "ExplorerActor", "LearnerActor", "LevelServiceActor",
+           "ParamsCache", "ParamsRef"]

@@ -1,0 +1,656 @@
+"""The Ray driver: a UED run's workers as Ray actors, on this machine or a cluster.
+
+    tabx train CONFIG --ray                  start Ray on this machine
+    tabx train CONFIG --ray --address auto   join a running cluster (or HOST:PORT)
+
+The driver process coordinates. It runs the curriculum, owns the JAX key chain and every object
+ref that matters, and decides every batch: batch `s` is curriculum step `s`, played with the
+key the chain gives that step, so any batch can be recomputed from the ledger. The actors wrap
+the local classes (`workers.actors`):
+
+    LevelService  one, CPU: generator, ACCEL mutator, level buffer (the buffer's only writer)
+    Learner       one, on a GPU where the cluster has one (`ray.learner_gpus`): the jitted
+                  rollout + PPO update on the levels it is given
+    Explorer      `ray.explorers` of them, CPU: score new and mutated levels (Robust PLR,
+                  ACCEL), rank SFL's random batches by learnability, with the newest policy
+                  the learner published
+    Evaluator     one, CPU: the zero-shot suites, on its own schedule (`ued.eval_every`)
+
+Levels and scores cross as numpy pytrees and come back as return values (owned by the driver);
+policy parameters are fetched from the learner once per version and handed to Explorers as a
+ref they pull only when it is newer than the one they hold. Every score carries the policy
+version that produced it and its batch id; the buffer keeps the version.
+
+Two modes (`ray.deterministic`):
+
+- **asynchronous** (default): batches the learner does not train on go to Explorers and run
+  beside the learner, each Explorer at most `ray.max_inflight` batches ahead. A result is
+  committed when it arrives; one whose policy is more than `ray.max_policy_lag` versions older
+  than the learner's is re-scored with the current policy instead (counted, `ray/rescored`).
+- **deterministic**: every batch in step order, each committed before the next is decided,
+  exactly the local driver's schedule: parameters and buffer equal the local driver's.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+import warnings
+from collections import Counter, deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+import jax
+import numpy as np
+
+from level_buffer import Source
+from tabx.files import atomic_write_json
+from ued.config import ConfigError, RaySection, TrainConfig
+from ued.curricula import Branch
+from ued.progress import Progress, ThroughputClock, log_update
+from ued.run_folder import EVENTS_DIR, LEVELS_DIR, open_checkpoints
+from ued.tensorboard import SummaryWriter
+from workers.actors import (
+    EvaluatorActor,
+    ExplorerActor,
+    LearnerActor,
+    LevelServiceActor,
+    ParamsRef,
+)
+from workers.driver import Callback, Driver, RunStopped
+from workers.local import UEDRun, branch_text, level_summary
+
+RAY_ENV = {"RAY_USAGE_STATS_ENABLED": "0"}
+RAY_RECORD = "ray.json"  # in the run folder: where the actors ran, what was committed
+
+
+def import_ray() -> Any:
+    """Ray, or a ConfigError that says how to install it."""
+    for name, value in RAY_ENV.items():
+        os.environ.setdefault(name, value)
+    try:
+        import ray
+    except ImportError:
+        raise ConfigError("ray.enabled: Ray is not installed; pip install -e '.[ray]'") from None
+    return ray
+
+
+def connect(section: RaySection) -> tuple[Any, bool]:
+    """Ray, connected: to `section.address` if set, else a Ray started here. Returns (ray,
+    whether this call started the connection, so the caller shuts it down)."""
+    ray = import_ray()
+    if ray.is_initialized():
+        return ray, False
+    kwargs: dict[str, Any] = {"logging_level": "WARNING", "log_to_driver": True}
+    if section.address:
+        kwargs["address"] = section.address
+    else:
+        kwargs["include_dashboard"] = False
+        if section.num_cpus:
+            kwargs["num_cpus"] = section.num_cpus
+        kwargs["object_store_memory"] = section.object_store_mb * 2**20
+    try:
+        with warnings.catch_warnings():
+            # Ray starts its processes with fork + exec, which is safe beside JAX's threads.
+            warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called",
+                                    category=RuntimeWarning)
+            ray.init(**kwargs)
+    except ConnectionError as err:
+        raise ConfigError(f"ray.address: cannot join the cluster at {section.address!r} "
+                          f"({err})") from None
+    return ray, True
+
+
+def actor_env(gpu: bool) -> dict[str, str]:
+    """Environment of an actor process: JAX on CPU unless it holds a GPU; a GPU holder does not
+    preallocate, so several JAX processes can share a node; the compilation cache shared."""
+    env = dict(RAY_ENV)
+    if gpu:
+        env["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
+    else:
+        env["JAX_PLATFORMS"] = "cpu"
+    cache = os.environ.get("TABX_COMPILE_CACHE_DIR")
+    if cache:
+        env["TABX_COMPILE_CACHE_DIR"] = cache
+    return env
+
+
+def learner_gpus(ray: Any, section: RaySection) -> float:
+    """GPUs for the learner actor: the config's, or (auto, -1) one if the cluster has any."""
+    if section.learner_gpus >= 0:
+        return float(section.learner_gpus)
+    return 1.0 if ray.cluster_resources().get("GPU", 0) >= 1 else 0.0
+
+
+@dataclass
+class Workers:
+    """The actor handles of one run."""
+
+    service: Any
+    learner: Any
+    explorers: list[Any]
+    evaluator: Any | None
+    gpus: float
+
+    def all(self) -> list[Any]:
+        return [self.service, self.learner, *self.explorers,
+                *([self.evaluator] if self.evaluator is not None else [])]
+
+    def names(self) -> list[str]:
+        return ["service", "learner", *(f"explorer-{i}" for i in range(len(self.explorers))),
+                *(["evaluator"] if self.evaluator is not None else [])]
+
+    def placement(self, ray: Any) -> dict[str, str]:
+        """Actor name -> id of the node it runs on."""
+        nodes = ray.get([a.node.remote() for a in self.all()])
+        return dict(zip(self.names(), nodes, strict=True))
+
+    def scorers(self) -> list[Any]:
+        """Who scores new levels: the Explorers, or the learner when there are none."""
+        return self.explorers or [self.learner]
+
+
+def start_workers(ray: Any, config: TrainConfig, stream: TextIO) -> Workers:
+    """The run's actors, constructed (their constructors build each one's part of the run)."""
+    section = config.ray
+    gpus = learner_gpus(ray, section)
+    if not section.address:
+        check_resources(ray, config, gpus)
+
+    def spawn(cls: type, name: str, *args: Any, num_gpus: float = 0.0, **options: Any) -> Any:
+        remote = ray.remote(cls)
+        return remote.options(name=None, num_cpus=options.pop("num_cpus", 1),
+                              num_gpus=num_gpus, max_restarts=0, max_task_retries=0,
+                              runtime_env={"env_vars": actor_env(num_gpus > 0)},
+                              **options).remote(*args)
+
+    # The service and evaluator are light: they share CPUs with the others.
+    service = spawn(LevelServiceActor, "service", config, num_cpus=0)
+    learner = spawn(LearnerActor, "learner", config, num_gpus=gpus, num_cpus=1 if not gpus else 0)
+    explorers = [spawn(ExplorerActor, f"explorer-{i}", config, num_cpus=1,
+                       scheduling_strategy="SPREAD")
+                 for i in range(section.explorers)]
+    evaluator = (spawn(EvaluatorActor, "evaluator", config, num_cpus=0)
+                 if config.ued.eval_suites else None)
+    workers = Workers(service, learner, explorers, evaluator, gpus)
+    wait_until_ready(ray, workers, stream)
+    return workers
+
+
+def cpus_needed(config: TrainConfig, gpus: float) -> int:
+    """CPUs the run's actors reserve: one per Explorer, one for a CPU learner."""
+    return config.ray.explorers + (0 if gpus else 1)
+
+
+def check_resources(ray: Any, config: TrainConfig, gpus: float) -> None:
+    """On a Ray started here nothing will join: refuse a run whose actors cannot all be placed
+    (Ray would keep them pending for ever)."""
+    have = ray.cluster_resources().get("CPU", 0)
+    need = cpus_needed(config, gpus)
+    if need > have:
+        raise ConfigError(f"ray.explorers: {config.ray.explorers} Explorers and a "
+                          f"{'GPU' if gpus else 'CPU'} learner reserve {need} CPUs, but this "
+                          f"Ray has {have:g}; lower ray.explorers or raise ray.num_cpus "
+                          f"(logical CPUs may exceed the cores)")
+
+
+def wait_until_ready(ray: Any, workers: Workers, stream: TextIO,
+                     report_every_s: float = 30.0) -> None:
+    """Wait for every actor's constructor (errors raise here). On a cluster that is short of
+    resources actors stay pending (an autoscaler may yet add nodes): say which, periodically."""
+    pending = {a.ready.remote(): name for a, name in zip(workers.all(), workers.names(),
+                                                          strict=True)}
+    t0 = time.perf_counter()
+    while pending:
+        ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=report_every_s)
+        for ref in ready:
+            ray.get(ref)
+            pending.pop(ref)
+        if pending:
+            resources = ray.available_resources()
+            stream.write(f"ray: waited {time.perf_counter() - t0:.0f} s for "
+                         f"{', '.join(sorted(pending.values()))} to start (cluster has "
+                         f"{resources.get('CPU', 0):g} CPUs and {resources.get('GPU', 0):g} "
+                         f"GPUs free)\n")
+            stream.flush()
+
+
+# --- the deterministic mode: the local step logic over blocking calls -------------------------
+
+
+class Blocking:
+    """An actor behind the interface of the local object it wraps: every call waits."""
+
+    def __init__(self, ray: Any, actor: Any):
+        self._ray, self._actor = ray, actor
+
+    def __getattr__(self, name: str) -> Any:
+        method = getattr(self._actor, name)
+        return lambda *args, **kwargs: self._ray.get(method.remote(*args, **kwargs))
+
+
+class RemoteLearner:
+    """The learner actor behind `workers.learner.Learner`'s interface, with the policy version
+    counted here and the parameters fetched once per version (a ref owned by the driver)."""
+
+    def __init__(self, ray: Any, actor: Any, version: int = 0):
+        self._ray, self._actor = ray, actor
+        self.version = int(version)
+        self._params: ParamsRef | None = None
+
+    def train(self, levels: Any, key: jax.Array) -> tuple[dict[str, Any], None]:
+        metrics = self._ray.get(self._actor.train.remote(levels, key))
+        self.version += 1
+        return metrics, None
+
+    def train_scored(self, levels: Any, key: jax.Array, score: str,
+                     max_returns: Any = None) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
+        out = self._ray.get(self._actor.train_scored.remote(levels, key, score, max_returns))
+        self.version += 1
+        return out
+
+    @property
+    def params(self) -> ParamsRef:
+        if self._params is None or self._params.version != self.version:
+            self._params = ParamsRef(self.version, [self._actor.params.remote()])
+        return self._params
+
+    @property
+    def train_state(self) -> Any:
+        return self._ray.get(self._actor.train_state.remote())
+
+
+class ExplorerPool:
+    """Explorer actors behind `workers.explorer.Explorer`'s interface: calls go round-robin and
+    wait (the deterministic mode)."""
+
+    def __init__(self, ray: Any, actors: list[Any]):
+        self._ray, self._actors, self._next = ray, actors, 0
+
+    def _actor(self) -> Any:
+        actor = self._actors[self._next % len(self._actors)]
+        self._next += 1
+        return actor
+
+    def score_levels(self, params: ParamsRef, levels: Any, key: jax.Array, score: str,
+                     max_returns: Any = None, num_steps: int | None = None) -> Any:
+        return self._ray.get(self._actor().score_levels.remote(params, levels, key, score,
+                                                              max_returns, num_steps))
+
+    def learnability(self, params: ParamsRef, levels: Any, key: jax.Array,
+                     num_steps: int | None = None) -> np.ndarray:
+        return self._ray.get(self._actor().learnability.remote(params, levels, key, num_steps))
+
+
+class RemoteEvaluator:
+    """The evaluator actor behind `workers.evaluator.Evaluator`'s interface (one per suite)."""
+
+    def __init__(self, ray: Any, actor: Any, index: int, suite_name: str):
+        self._ray, self._actor, self.index = ray, actor, index
+        self.suite = _SuiteName(suite_name)
+
+    def evaluate(self, params: ParamsRef, key: jax.Array) -> Any:
+        return self._ray.get(self._actor.evaluate.remote(self.index, params, key))
+
+    def log(self, writer: SummaryWriter, step: int, result: Any) -> None:
+        from workers.evaluator import log
+
+        log(writer, step, result)
+
+
+@dataclass(frozen=True)
+class _SuiteName:
+    name: str
+
+
+# --- the asynchronous mode ------------------------------------------------------------------
+
+
+@dataclass
+class Batch:
+    """One curriculum step handed to an Explorer: what is needed to commit or re-issue it."""
+
+    step: int
+    branch: Branch
+    levels: Any  # ObjectRef of the numpy levels
+    key: jax.Array
+    version: int
+    explorer: int
+    parent_ids: np.ndarray | None = None
+    issued_s: float = field(default_factory=time.perf_counter)
+    rescored: int = 0
+
+
+@dataclass
+class RayStats:
+    """What the progress line and `ray/*` scalars report."""
+
+    trained_steps: int = 0
+    explored_steps: int = 0
+    committed: int = 0
+    rescored: int = 0
+    staleness: Counter = field(default_factory=Counter)  # version lag at commit -> batches
+    learner_busy_s: float = 0.0
+    wait_for_levels_s: float = 0.0
+    t0: float = field(default_factory=time.perf_counter)
+
+    def scalars(self, live_explorers: int, inflight: int) -> dict[str, float]:
+        elapsed = max(time.perf_counter() - self.t0, 1e-9)
+        lags = list(self.staleness.elements())
+        out = {"ray/trained_steps_per_s": self.trained_steps / elapsed,
+               "ray/explored_steps_per_s": self.explored_steps / elapsed,
+               "ray/live_explorers": float(live_explorers),
+               "ray/inflight_batches": float(inflight),
+               "ray/committed_batches": float(self.committed),
+               "ray/rescored": float(self.rescored),
+               "ray/learner_busy_fraction": self.learner_busy_s / elapsed,
+               "ray/wait_for_levels_s": self.wait_for_levels_s}
+        if lags:
+            out["ray/staleness_mean"] = float(np.mean(lags))
+            out["ray/staleness_max"] = float(max(lags))
+        return out
+
+    def text(self, live_explorers: int, buffer_size: int | None) -> str:
+        elapsed = max(time.perf_counter() - self.t0, 1e-9)
+        lags = list(self.staleness.elements())
+        parts = [f"trained {self.trained_steps / elapsed:,.0f}/s",
+                 f"explored {self.explored_steps / elapsed:,.0f}/s",
+                 f"explorers {live_explorers}"]
+        if buffer_size is not None:
+            parts.append(f"buffer {buffer_size}")
+        if lags:
+            parts.append(f"lag {np.mean(lags):.1f}")
+        return ", ".join(parts)
+
+
+class AsyncRun:
+    """The asynchronous schedule over the actors of one run (see the module doc)."""
+
+    def __init__(self, ray: Any, config: TrainConfig, run: UEDRun, learner: RemoteLearner,
+                 workers: Workers):
+        self.ray, self.config, self.run, self.learner, self.workers = (ray, config, run,
+                                                                       learner, workers)
+        self.scorers = workers.scorers()
+        self.pending: dict[Any, Batch] = {}
+        self.inflight = [0] * len(self.scorers)
+        self.stats = RayStats()
+        self.ledger: dict[int, str] = {}  # step -> "issued" | "committed"
+        self.recent_lags: deque[int] = deque(maxlen=1000)
+        self.evaluations: list[tuple[int, str, Any]] = []  # (step, suite, ref) running
+
+    # Evaluation runs beside training: submitted at its steps, logged when it is done -------
+
+    def submit_evaluation(self, done: int) -> None:
+        evaluator = self.workers.evaluator
+        if evaluator is None:
+            return
+        key = jax.random.fold_in(jax.random.key(self.config.seed ^ 0x5EED), done)
+        for i, name in enumerate(self.config.ued.eval_suites):
+            ref = evaluator.evaluate.remote(i, self.learner.params, jax.random.fold_in(key, i))
+            self.evaluations.append((done, name, ref))
+
+    def log_evaluations(self, writer: SummaryWriter, stream: TextIO | None,
+                        block: bool = False) -> None:
+        from workers.evaluator import log
+
+        keep = []
+        for done, name, ref in self.evaluations:
+            ready, _ = self.ray.wait([ref], timeout=None if block else 0)
+            if not ready:
+                keep.append((done, name, ref))
+                continue
+            result = self.ray.get(ref)
+            log(writer, done * self.config.learner.steps_per_update, result)
+            if stream is not None:
+                stream.write(f"  eval {name} after step {done}: mean win rate "
+                             f"{result.mean_win_rate:.2f}\n")
+                stream.flush()
+        self.evaluations = keep
+
+    def record(self) -> dict[str, Any]:
+        """What `ray.json` keeps of the schedule: batches, re-scores, the staleness histogram."""
+        states = Counter(self.ledger.values())
+        return {"committed_batches": self.stats.committed, "rescored": self.stats.rescored,
+                "staleness": {str(k): v for k, v in sorted(self.stats.staleness.items())},
+                "ledger": dict(states), "trained_steps": self.stats.trained_steps,
+                "explored_steps": self.stats.explored_steps,
+                "learner_busy_s": self.stats.learner_busy_s,
+                "wait_for_levels_s": self.stats.wait_for_levels_s}
+
+    # Explorer work ------------------------------------------------------------------------
+
+    def _free_explorer(self) -> int:
+        """An explorer with room, waiting for results (and committing them) until one has."""
+        limit = self.config.ray.max_inflight
+        while True:
+            free = [i for i, n in enumerate(self.inflight) if n < limit]
+            if free:
+                return min(free, key=lambda i: self.inflight[i])
+            self.collect(block=True)
+
+    def _submit(self, batch: Batch) -> None:
+        ued = self.config.ued
+        actor = self.scorers[batch.explorer]
+        ref = actor.score_levels.remote(self.learner.params, batch.levels, batch.key, ued.score,
+                                        None, None)
+        self.pending[ref] = batch
+        self.inflight[batch.explorer] += 1
+
+    def explore(self, step: int, branch: Branch, levels_ref: Any, key: jax.Array,
+                parent_ids: np.ndarray | None = None) -> None:
+        i = self._free_explorer()
+        batch = Batch(step, branch, levels_ref, key, self.learner.version, i, parent_ids)
+        self.ledger[step] = "issued"
+        self._submit(batch)
+
+    def collect(self, block: bool) -> None:
+        """Commit the explorer results that are ready (wait for one if `block`)."""
+        if not self.pending:
+            return
+        t0 = time.perf_counter()
+        ready, _ = self.ray.wait(list(self.pending), num_returns=1,
+                                 timeout=None if block else 0)
+        if block:
+            self.stats.wait_for_levels_s += time.perf_counter() - t0
+        for ref in ready:
+            batch = self.pending.pop(ref)
+            self.inflight[batch.explorer] -= 1
+            _, scores, best = self.ray.get(ref)
+            lag = self.learner.version - batch.version
+            if lag > self.config.ray.max_policy_lag:
+                # Too old to trust: score the same levels again with the current policy.
+                self.stats.rescored += 1
+                batch.version, batch.rescored = self.learner.version, batch.rescored + 1
+                self._submit(batch)
+                continue
+            self.commit(batch, scores, best, lag)
+
+    def commit(self, batch: Batch, scores: np.ndarray, best: np.ndarray, lag: int) -> None:
+        service = self.workers.service
+        source = Source.MUTATION if batch.branch == Branch.MUTATE else Source.RANDOM
+        parents = -1 if batch.parent_ids is None else batch.parent_ids
+        self.ray.get(service.insert.remote(batch.levels, scores, best, batch.version, source,
+                                           parents))
+        self.ledger[batch.step] = "committed"
+        self.stats.committed += 1
+        self.stats.staleness[lag] += 1
+        self.recent_lags.append(lag)
+        self.stats.explored_steps += self.config.learner.steps_per_update
+
+    def drain(self) -> None:
+        while self.pending:
+            self.collect(block=True)
+
+    # One step -----------------------------------------------------------------------------
+
+    def step(self, step: int, key: jax.Array) -> tuple[Branch, dict[str, Any] | None, Any]:
+        """Decide and issue curriculum step `step`. Explorer batches return at once (metrics
+        None); learner batches wait for the update."""
+        run, learner, service = self.run, self.learner, self.workers.service
+        n = self.config.learner.num_envs
+        keys = jax.random.split(key, 3)  # levels, rollout, edits (as UEDRun.step)
+        k_levels, k_roll, k_edit = keys
+        curriculum = run.curriculum
+        self.collect(block=False)
+        branch = run.next_branch()
+        replay_ids = None
+        metrics = levels = None
+        if not curriculum.learns(branch):
+            # Levels go from the service to an Explorer as a ref: the driver never holds them.
+            if branch == Branch.NEW:
+                self.explore(step, branch, service.fresh.remote(k_levels, n), k_roll)
+            else:
+                parent_ids = np.asarray(curriculum.last_replay_ids, np.int64)
+                self.explore(step, branch, service.mutate_ids.remote(k_edit, parent_ids),
+                             k_roll, parent_ids)
+        else:
+            t0 = time.perf_counter()
+            metrics, levels, replay_ids = run.learning_step(learner, branch, step, keys)
+            self.stats.learner_busy_s += time.perf_counter() - t0
+            self.stats.trained_steps += self.config.learner.steps_per_update
+            self.ledger[step] = "committed"
+            metrics = run.step_metrics(metrics, branch, True, learner.version)
+        curriculum.observe(branch, replay_ids)
+        return branch, metrics, levels
+
+
+class RayDriver(Driver):
+    """Runs a UED run's workers as Ray actors (see the module doc)."""
+
+    name = "ray"
+
+    def run(self, config: TrainConfig, run_dir: Path, *, resume: bool = False,
+            max_updates: int | None = None, progress: bool = True,
+            stream: TextIO | None = None, callback: Callback | None = None) -> Path:
+        if not config.ued.enabled:
+            raise ConfigError("ray.enabled: the Ray driver runs UED runs (ued.method); a plain "
+                              "MARL run trains in one process: drop ray.enabled")
+        stream = sys.stderr if stream is None else stream
+        ray, started = connect(config.ray)
+        workers = None
+        try:
+            workers = start_workers(ray, config, stream)
+            return self._train(ray, workers, config, run_dir, resume=resume,
+                               max_updates=max_updates, progress=progress, stream=stream,
+                               callback=callback)
+        except ray.exceptions.RayActorError as err:
+            cause = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            stream.write(f"ray: an actor died: {cause}\n")
+            stream.flush()
+            raise RunStopped(f"{run_dir}: an actor of the run died ({cause}); continue from the "
+                             f"last checkpoint with: tabx train --resume {run_dir}") from err
+        finally:
+            if workers is not None:
+                for actor in workers.all():
+                    ray.kill(actor)
+            if started:
+                ray.shutdown()
+
+    def _train(self, ray: Any, workers: Workers, config: TrainConfig, run_dir: Path, *,
+               resume: bool, max_updates: int | None, progress: bool, stream: TextIO,
+               callback: Callback | None) -> Path:
+        service = Blocking(ray, workers.service)
+        explorers = ExplorerPool(ray, workers.scorers())
+        evaluators = [RemoteEvaluator(ray, workers.evaluator, i, name)
+                      for i, name in enumerate(config.ued.eval_suites)]
+        run = UEDRun(config, service, explorers, evaluators)
+        ppo = config.learner
+        total = ppo.num_updates
+        key = jax.random.key(config.seed)
+        key, k_init = jax.random.split(key)
+        ray.get(workers.learner.init.remote(k_init))
+        start, version = 0, 0
+        levels_dir = run_dir / LEVELS_DIR
+        checkpoints = open_checkpoints(run_dir, config)
+        if resume and checkpoints.latest() is not None:
+            template = ray.get(workers.learner.train_state.remote())
+            train_state, key, start = checkpoints.restore(template)
+            try:
+                version = run.load_state(service.load(str(levels_dir), start))
+            except FileNotFoundError as err:
+                raise ConfigError(f"{run_dir}: cannot resume: {err}") from None
+            ray.get(workers.learner.set_train_state.remote(train_state, version))
+        learner = RemoteLearner(ray, workers.learner, version)
+        placement = workers.placement(ray)
+        deterministic = config.ray.deterministic
+        asynchronous = None if deterministic else AsyncRun(ray, config, run, learner, workers)
+        stop = total if max_updates is None else min(total, start + max_updates)
+        bar = Progress(total, stream) if progress else None
+        if progress:
+            mode = "deterministic" if deterministic else "asynchronous"
+            what = "resuming" if resume else "training"
+            stream.write(f"{what} {config.ued.method} + {config.algorithm} on Ray ({mode}, "
+                         f"{len(workers.explorers)} explorers, learner "
+                         f"{'GPU' if workers.gpus else 'CPU'}) in {run_dir}; {total} steps of "
+                         f"{ppo.steps_per_update:,} env steps"
+                         f"{f', from step {start}' if start else ''}\n")
+            stream.flush()
+        writer = SummaryWriter(run_dir / EVENTS_DIR)
+        counts = {b: 0 for b in Branch}
+        logged_metrics: dict[str, Any] = {}
+        try:
+            clock = ThroughputClock(start, ppo.steps_per_update)
+            for step in range(start, stop):
+                key, k_step = jax.random.split(key)
+                if asynchronous is None:
+                    branch, metrics, levels = run.step(learner, step, k_step)
+                else:
+                    branch, metrics, levels = asynchronous.step(step, k_step)
+                counts[branch] += 1
+                done = step + 1
+                last = done == stop
+                if metrics is not None:
+                    logged_metrics = metrics
+                checkpoint_due = done % config.run.checkpoint_every == 0 or last
+                if asynchronous is not None and checkpoint_due:
+                    asynchronous.drain()  # a snapshot holds every issued batch's result
+                if clock.first_pending or done % config.run.log_every == 0 or last:
+                    values = dict(jax.device_get(logged_metrics))
+                    timing, rate = clock.read(done)
+                    values.update(timing)
+                    values.update(service.stats())
+                    if levels is not None:
+                        values.update(level_summary(levels))
+                    if run.sfl_scoring_steps:
+                        values["sfl/scoring_env_steps"] = float(run.sfl_scoring_steps)
+                    extra = branch_text(counts, service.buffer_size())
+                    if asynchronous is not None:
+                        values.update(asynchronous.stats.scalars(
+                            len(workers.explorers), len(asynchronous.pending)))
+                        extra = asynchronous.stats.text(len(workers.explorers),
+                                                        service.buffer_size())
+                    log_update(writer, bar, None, done, None, values, ppo.steps_per_update,
+                               rate, total, last, extra=extra)
+                    if callback is not None:
+                        callback(done, learner.train_state, {k: float(v)
+                                                             for k, v in values.items()})
+                if run.evaluators and (done % config.ued.eval_every == 0 or last):
+                    if asynchronous is None:
+                        run.evaluate(learner, writer, done, stream if progress else None)
+                    else:
+                        asynchronous.submit_evaluation(done)
+                if asynchronous is not None:
+                    asynchronous.log_evaluations(writer, stream if progress else None)
+                if checkpoint_due:
+                    service.save(str(levels_dir), done, run.state(learner),
+                                 config.run.keep_checkpoints)
+                    checkpoints.save(done, learner.train_state, key)
+            if asynchronous is not None:
+                asynchronous.drain()
+                asynchronous.log_evaluations(writer, stream if progress else None, block=True)
+            record = {"mode": "deterministic" if deterministic else "asynchronous",
+                      "learner_gpus": workers.gpus, "placement": placement,
+                      "branches": {b.name.lower(): n for b, n in counts.items()},
+                      "steps": [start, stop]}
+            if asynchronous is not None:
+                record.update(asynchronous.record())
+            atomic_write_json(run_dir / RAY_RECORD, record)
+        finally:
+            writer.close()
+            checkpoints.close()
+        return run_dir
+
+
+__all__ = ["RAY_RECORD", "RayDriver", "connect", "import_ray"]
