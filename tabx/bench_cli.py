@@ -56,7 +56,7 @@ def add_parser(subparsers: argparse._SubParsersAction,
 
 
 def add_suite_parsers(which: argparse._SubParsersAction) -> None:
-    positive, positive_list = _int_at_least(1), _int_list(1)
+    positive, positive_list = int_at_least(1), int_list(1)
     scale = which.add_parser("scale", help="steps/s versus num_envs for 3v3..10v10 (plot)")
     scale.add_argument("--team-sizes", type=_team_sizes, default=list(SCALE_TEAM_SIZES),
                        help="comma-separated units per team (default 3,5,8,10)")
@@ -65,7 +65,7 @@ def add_suite_parsers(which: argparse._SubParsersAction) -> None:
     scale.add_argument("--enemy", type=_controllers, default=list(SCALE_ENEMIES),
                        help="comma-separated enemy controllers, allies random (default "
                             "random,heuristic:medium)")
-    scale.add_argument("--zones", type=_int_at_least(0), default=0,
+    scale.add_argument("--zones", type=int_at_least(0), default=0,
                        help="zones per level (default 0)")
     scale.add_argument("--steps", type=positive, default=128, help="scan length (default 128)")
     scale.add_argument("--repeats", type=positive, default=3,
@@ -103,7 +103,7 @@ def add_suite_parsers(which: argparse._SubParsersAction) -> None:
                          help="timed calls (median; default 3)")
     compare.add_argument("--no-obs", dest="obs", action="store_false",
                          help="drop observations in both simulators")
-    compare.add_argument("--scenarios", type=_int_at_least(0), default=100,
+    compare.add_argument("--scenarios", type=int_at_least(0), default=100,
                          help="reconfiguration scenarios (default 100; 0 skips reconfiguration)")
     compare.add_argument("--peer-scenarios", type=positive, default=None,
                          help="scenarios to really run on the peer, the rest extrapolated "
@@ -132,7 +132,7 @@ def _positive_ints(text: str) -> list[int]:
     return values
 
 
-def _int_list(minimum: int) -> Callable[[str], list[int]]:
+def int_list(minimum: int) -> Callable[[str], list[int]]:
     def parse(text: str) -> list[int]:
         parts = [p.strip() for p in text.split(",")]
         if not text.strip() or any(not p for p in parts):
@@ -152,7 +152,7 @@ def _int_list(minimum: int) -> Callable[[str], list[int]]:
     return parse
 
 
-def _int_at_least(minimum: int) -> Callable[[str], int]:
+def int_at_least(minimum: int) -> Callable[[str], int]:
     def parse(text: str) -> int:
         try:
             value = int(text)
@@ -166,7 +166,7 @@ def _int_at_least(minimum: int) -> Callable[[str], int]:
 
 
 def _team_sizes(text: str) -> list[int]:
-    values = _int_list(1)(text)
+    values = int_list(1)(text)
     too_big = [v for v in values if v > 100]
     if too_big:
         raise argparse.ArgumentTypeError(f"at most 100 units a side, got {too_big[0]}")
@@ -181,4 +181,4 @@ def _controllers(text: str) -> list[str]:
     return parts
 
 
-__all__ = ["BenchRegistrar", "add_parser", "add_suite_parsers"]
+__all__ = ["BenchRegistrar", "add_parser", "add_suite_parsers", "int_at_least", "int_list"]

@@ -16,10 +16,11 @@ from tabx import cli as simulator_cli
 from tabx_ued import run_commands
 from ued import levels_cli, plot
 from ued.learners.bench import add_train_bench
+from workers.bench import add_ued_bench
 
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
-    simulator_cli.add_simulator_commands(subparsers, bench_extra=[add_train_bench])
+    simulator_cli.add_simulator_commands(subparsers, bench_extra=[add_train_bench, add_ued_bench])
     buffer_cli.add_parser(subparsers)
     run_commands.add_parser(subparsers)
     levels_cli.add_parser(subparsers)

@@ -5,12 +5,14 @@
     tabx eval RUN_DIR [--scenario NAME] [--enemy heuristic:medium] [--episodes K] [--gif PATH]
     tabx eval --ally RUN_A --enemy RUN_B [--scenario NAME]
     tabx eval RUN_DIR --suite NAME_OR_FILE [--episodes K] [--json OUT] [--seed S]
+    tabx eval RUN_DIR --suite NAME_OR_FILE --ray [--address auto|HOST:PORT]
     tabx eval --list-suites
 
 A side of `tabx eval` (`--ally`, `--enemy`) is a run folder or a controller
 (`heuristic[:TIER]`, `random`, `idle`); the positional RUN_DIR plays the team it was trained
 for, and the team nobody names plays the run's training opponent. `--suite` evaluates the
-run zero-shot on every entry of an evaluation suite (`ued.suites`, `workers.evaluator`).
+run zero-shot on every entry of an evaluation suite (`ued.suites`, `workers.evaluator`);
+with `--ray` on a Ray actor (`workers.ray_eval`), here or on a cluster.
 Training goes through `workers.train.train`, which picks the driver.
 """
 
@@ -85,6 +87,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
         return _list_suites()
     if args.episodes is not None and args.episodes < 1:
         raise UserError(f"--episodes must be >= 1, got {args.episodes}")
+    if args.address is not None and not args.ray:
+        raise UserError("--address joins a Ray cluster: give --ray too")
+    if args.ray and args.suite is None:
+        raise UserError("--ray plays an evaluation suite on a Ray actor: give --suite")
     compile_cache.enable()
     if args.suite is not None:
         return _eval_suite(args)
@@ -163,8 +169,16 @@ def _eval_suite(args: argparse.Namespace) -> int:
     try:
         suite = load_suite(args.suite)
         policy = load_policy(args.run_dir, args.checkpoint)
-        evaluator = Evaluator(policy.learner, suite, episodes=args.episodes, greedy=args.greedy)
-        result = evaluator.evaluate(policy.params, jax.random.key(args.seed))
+        key = jax.random.key(args.seed)
+        if args.ray:
+            from workers.ray_eval import evaluate_on_ray
+
+            result = evaluate_on_ray(policy, suite, key, episodes=args.episodes,
+                                     greedy=args.greedy, address=args.address or "")
+        else:
+            evaluator = Evaluator(policy.learner, suite, episodes=args.episodes,
+                                  greedy=args.greedy)
+            result = evaluator.evaluate(policy.params, key)
     except ConfigError as err:
         raise UserError(str(err)) from None
     print(f"policy {policy}")
@@ -248,6 +262,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     ev.add_argument("--json", metavar="OUT", help="with --suite: also write the results as JSON")
     ev.add_argument("--list-suites", action="store_true",
                     help="list the shipped evaluation suites and exit")
+    ev.add_argument("--ray", action="store_true",
+                    help="with --suite: play the suite on a Ray actor (needs the ray extra): "
+                         "on this machine, or on a cluster with --address")
+    ev.add_argument("--address", metavar="ADDRESS",
+                    help="with --ray: join a running Ray cluster (auto, or HOST:PORT)")
     ev.set_defaults(func=cmd_eval)
 
 __all__ = ["add_parser", "cmd_eval", "cmd_train"]

@@ -13,3 +13,8 @@ os.environ["TABX_COMPILE_CACHE_DIR"] = "off"
 if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
                                + " --xla_force_host_platform_device_count=2").strip()
+
+# Ray clusters in tests live on 127.0.0.1 (read when Ray is imported): without this Ray swaps
+# 127.0.0.1 for the machine's outward address and a joining process cannot find the head.
+os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")

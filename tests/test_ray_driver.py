@@ -35,8 +35,9 @@ STEPS = 6
 
 @pytest.fixture(scope="module", autouse=True)
 def local_ray():
-    # Three logical CPUs (on two cores): a learner and two Explorers each reserve one.
-    ray.init(num_cpus=3, include_dashboard=False, object_store_memory=128 * 2**20,
+    # Three logical CPUs (on two cores): a learner and two Explorers each reserve one. "local":
+    # a Ray of our own even where a `ray start` cluster left its address in /tmp/ray.
+    ray.init(address="local", num_cpus=3, include_dashboard=False, object_store_memory=128 * 2**20,
              logging_level="ERROR")
     yield
     ray.shutdown()
@@ -134,3 +135,70 @@ def test_the_local_mode_never_imports_ray():
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
+
+
+def test_ued_bench_measures_the_same_work_on_both_drivers():
+    from workers.bench import format_table, ray_overhead, run_ued_bench
+
+    out = io.StringIO()
+    results = run_ued_bench(ued_config("accel"), explorers=[1], warmup=2, steps=3, stream=out)
+    assert [r.label for r in results] == ["local", "ray, 0 explorers, deterministic",
+                                          "ray, 1 explorers"]
+    local, deterministic, asynchronous = results
+    # The deterministic schedule replays the local driver's steps: the same branches, the
+    # same env steps trained and explored.
+    assert deterministic.branches == local.branches and sum(local.branches.values()) == 3
+    assert (deterministic.trained_steps, deterministic.explored_steps) == (
+        local.trained_steps, local.explored_steps)
+    assert local.trained_steps + local.explored_steps == 3 * 4 * 16  # 4 envs x 16 steps each
+    assert asynchronous.trained_steps > 0 and asynchronous.seconds > 0
+    assert 0 < asynchronous.learner_busy_fraction <= 1
+    assert ray_overhead(results) is not None
+    table = format_table(results)
+    assert "Ray overhead on the local driver's work" in table and "ray, 1 explorers" in table
+    assert out.getvalue().count("env steps/s") == 3  # one progress line per setting
+
+
+def test_ued_bench_cli_rejects_bad_arguments(capsys):
+    from tabx_ued.cli import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["bench", "ued", "--explorers", "1,-2"])
+    assert exit_.value.code == 2 and "--explorers" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_:
+        main(["bench", "ued", "--steps", "0"])
+    assert exit_.value.code == 2 and "--steps" in capsys.readouterr().err
+    assert main(["bench", "ued", "configs/marl/mappo_grid.yaml"]) == 2
+    assert "ued.method: tabx bench ued needs a UED config" in capsys.readouterr().err
+
+
+def test_eval_suite_on_a_ray_actor_gives_the_local_table(tmp_path, capsys):
+    from test_eval_suites import weak_level
+
+    from tabx.scenarios import level_to_scenario, save_scenario
+    from tabx_ued.cli import main
+
+    for weak in ("ally", "enemy"):
+        save_scenario(tmp_path / f"weak_{weak}.json",
+                      level_to_scenario(weak_level(weak), name=f"weak_{weak}"))
+    suite = tmp_path / "duels.yaml"
+    suite.write_text("name: duels\nepisodes: 2\nentries:\n"
+                     f"  - scenario: {tmp_path / 'weak_ally.json'}\n    opponent: random\n"
+                     f"  - scenario: {tmp_path / 'weak_enemy.json'}\n    opponent: idle\n")
+    run = train(ued_config("dr"), run_dir=tmp_path / "run", stream=io.StringIO(),
+                max_updates=1)
+    outputs = {}
+    for name, extra in (("local", []), ("ray", ["--ray"])):
+        out_json = tmp_path / f"{name}.json"
+        assert main(["eval", str(run), "--suite", str(suite), "--seed", "5", "--json",
+                     str(out_json), *extra]) == 0
+        outputs[name] = json.loads(out_json.read_text())
+    assert "ray: evaluating duels on a CPU actor" in capsys.readouterr().err
+    assert [e["win_rate"] for e in outputs["ray"]["entries"]] == [0.0, 1.0]
+    assert outputs["ray"] == outputs["local"]  # the same Evaluator, seed and parameters
+
+    for argv, message in ((["eval", str(run), "--ray"], "--ray plays an evaluation suite"),
+                          (["eval", str(run), "--suite", str(suite), "--address", "auto"],
+                           "--address joins a Ray cluster: give --ray too")):
+        assert main(argv) == 2
+        assert message in capsys.readouterr().err

@@ -47,6 +47,7 @@ class Curriculum:
 
     name = "curriculum"
     uses_buffer = False
+    branches: tuple[Branch, ...] = ()  # every branch `next_branch` can take
 
     def __init__(self, exploratory_grad_updates: bool | None = None):
         default = self.default_exploratory_grad_updates
@@ -87,6 +88,7 @@ class Curriculum:
 
 class DomainRandomization(Curriculum):
     name = "dr"
+    branches = (Branch.NEW,)
 
     def next_branch(self, buffer: ReplayDecider | None) -> Branch:
         return Branch.NEW
@@ -100,6 +102,7 @@ class PLR(Curriculum):
     levels, which is what makes its regret-based curriculum a minimax-regret strategy."""
 
     uses_buffer = True
+    branches = (Branch.NEW, Branch.REPLAY)
 
     def __init__(self, robust: bool = False, exploratory_grad_updates: bool | None = None):
         self.name = "robust_plr" if robust else "plr"
@@ -114,6 +117,8 @@ class PLR(Curriculum):
 class ACCEL(PLR):
     """Robust PLR whose replay steps are each followed by a mutation step: the replayed levels
     are edited and the children scored (and inserted) without a gradient update."""
+
+    branches = (Branch.NEW, Branch.REPLAY, Branch.MUTATE)
 
     def __init__(self, exploratory_grad_updates: bool | None = None):
         super().__init__(robust=True, exploratory_grad_updates=exploratory_grad_updates)
@@ -130,6 +135,7 @@ class SFL(Curriculum):
     from the learnable set; the driver rebuilds that set every `update_freq` steps."""
 
     name = "sfl"
+    branches = (Branch.SFL,)
 
     def __init__(self, update_freq: int):
         super().__init__(True)

@@ -30,6 +30,8 @@ from ued import compile_cache
 from ued.config import TrainConfig
 from ued.experiment import learner_for
 from ued.learners.ppo import PPOLearner
+from ued.suites import EvalSuite
+from workers.evaluator import Evaluator, SuiteResult
 from workers.explorer import Explorer
 from workers.learner import Learner
 from workers.level_service import LevelService, to_device, to_host
@@ -179,9 +181,22 @@ class EvaluatorActor(ActorBase):
         return self.evaluators[index].evaluate(self.cache.get(params), key)
 
 
+class SuiteEvaluatorActor(ActorBase):
+    """One suite for one trained policy (`tabx eval RUN_DIR --suite NAME --ray`): built from
+    the run's config, it plays the parameters it is handed (numpy) and returns the result."""
+
+    def __init__(self, config: TrainConfig, suite: EvalSuite, episodes: int | None,
+                 greedy: bool):
+        super().__init__(config)
+        self.evaluator = Evaluator(learner_for(config), suite, episodes=episodes, greedy=greedy)
+
+    def evaluate(self, params: Any, key: jax.Array) -> SuiteResult:
+        return self.evaluator.evaluate(jax.tree.map(jnp.asarray, params), key)
+
+
 def _host_metrics(metrics: dict[str, Any]) -> dict[str, float]:
     return {k: np.asarray(v) for k, v in jax.device_get(metrics).items()}
 
 
 __all__ = ["ActorBase", "EvaluatorActor", "ExplorerActor", "LearnerActor", "LevelServiceActor",
-           "ParamsCache", "ParamsRef"]
+           "ParamsCache", "ParamsRef", "SuiteEvaluatorActor"]

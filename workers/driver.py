@@ -37,6 +37,11 @@ class Driver(abc.ABC):
 
     name: str = ""
 
+    def check(self, config: TrainConfig) -> None:
+        """Refuse, before the run folder is made, a run this driver cannot start (ConfigError
+        naming the setting). The local driver can start any valid config."""
+        return None
+
     @abc.abstractmethod
     def run(self, config: TrainConfig, run_dir: Path, *, resume: bool = False,
             max_updates: int | None = None, progress: bool = True,

@@ -34,6 +34,7 @@ Two modes (`ray.deterministic`):
 from __future__ import annotations
 
 import os
+import socket
 import sys
 import time
 import warnings
@@ -85,8 +86,11 @@ def connect(section: RaySection) -> tuple[Any, bool]:
         return ray, False
     kwargs: dict[str, Any] = {"logging_level": "WARNING", "log_to_driver": True}
     if section.address:
+        check_reachable(section.address)
         kwargs["address"] = section.address
     else:
+        # "local": a new Ray, even where `ray start` left a cluster that ray.init would join.
+        kwargs["address"] = "local"
         kwargs["include_dashboard"] = False
         if section.num_cpus:
             kwargs["num_cpus"] = section.num_cpus
@@ -98,9 +102,27 @@ def connect(section: RaySection) -> tuple[Any, bool]:
                                     category=RuntimeWarning)
             ray.init(**kwargs)
     except ConnectionError as err:
+        hint = ("" if os.environ.get("RAY_AUTH_MODE") else
+                "; a cluster started with `ray start` checks a token: set RAY_AUTH_MODE=token "
+                "and give this machine its ~/.ray/auth_token")
         raise ConfigError(f"ray.address: cannot join the cluster at {section.address!r} "
-                          f"({err})") from None
+                          f"({err}){hint}") from None
     return ray, True
+
+
+def check_reachable(address: str, timeout_s: float = 5.0) -> None:
+    """Fail fast where no head answers at HOST:PORT (Ray itself retries for minutes)."""
+    if address in ("auto", "local") or "://" in address:
+        return
+    host, sep, port = address.rpartition(":")
+    if not sep or not port.isdigit():
+        raise ConfigError(f"ray.address: expected 'auto' or HOST:PORT, got {address!r}")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+    except OSError as err:
+        raise ConfigError(f"ray.address: no Ray head answers at {address} ({err.strerror or err}"
+                          f"); start one there (ray start --head --port={port}) or give "
+                          f"another address") from None
 
 
 def actor_env(gpu: bool) -> dict[str, str]:
@@ -520,6 +542,14 @@ class RayDriver(Driver):
     """Runs a UED run's workers as Ray actors (see the module doc)."""
 
     name = "ray"
+
+    def check(self, config: TrainConfig) -> None:
+        if not config.ued.enabled:
+            raise ConfigError("ray.enabled: the Ray driver runs UED runs (ued.method); a plain "
+                              "MARL run trains in one process: drop ray.enabled")
+        import_ray()
+        if config.ray.address:
+            check_reachable(config.ray.address)
 
     def run(self, config: TrainConfig, run_dir: Path, *, resume: bool = False,
             max_updates: int | None = None, progress: bool = True,

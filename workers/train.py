@@ -48,12 +48,13 @@ def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = Non
             config = dataclasses.replace(config, ray=ray).validate()
     elif config is None:
         raise ConfigError("a new run needs a config")
+    driver = driver if driver is not None else driver_for(config)
     check_devices(config)  # before a new run's folder exists
+    driver.check(config)
     if not resume:
         run_dir = create_run_dir(config, run_dir)
     assert run_dir is not None
     compile_cache.enable(config.run.compile_cache)
-    driver = driver if driver is not None else driver_for(config)
     return driver.run(config, Path(run_dir), resume=resume, max_updates=max_updates,
                       progress=progress, stream=stream, callback=callback)
 

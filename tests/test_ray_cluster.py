@@ -1,0 +1,162 @@
+"""The Ray driver on real multi-process clusters on 127.0.0.1: a two-node cluster
+(`ray.cluster_utils.Cluster`) with an Explorer on each node, and a cluster started with the
+`ray` command line that `tabx train --ray --address` joins.
+
+Each test starts its cluster, runs a short asynchronous ACCEL or Robust PLR job (the UED tests'
+tiny config), checks where the actors ran, the level buffer and the `ray/*` metrics, and shuts
+the cluster down (bounded in time; never `ray stop`, which would stop every Ray on the machine).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import ray
+from ray.cluster_utils import Cluster
+from test_ued_train import ued_config
+
+from level_buffer import LevelBuffer
+from ued.run_folder import EVENTS_DIR, LEVELS_DIR
+from ued.tensorboard import read_scalars
+from workers.ray_driver import RAY_RECORD
+from workers.train import train
+
+STEPS = 6
+
+
+def check_run(run_dir: Path, steps: int) -> dict:
+    """The run folder of a finished asynchronous run: its record, buffer and metrics agree."""
+    record = json.loads((run_dir / RAY_RECORD).read_text())
+    assert record["mode"] == "asynchronous" and record["steps"] == [0, steps]
+    assert record["ledger"] == {"committed": steps}
+    buffer = LevelBuffer.load(run_dir / LEVELS_DIR / f"buffer-{steps}.msgpack")
+    assert len(buffer) > 0
+    scored = record["branches"]["new"] + record["branches"]["mutate"]
+    assert record["committed_batches"] == scored
+    assert buffer.stats["insert_attempts"] == 4 * scored
+    assert buffer.column("policy_version").max() <= record["branches"]["replay"]
+    scalars = read_scalars(run_dir / EVENTS_DIR)
+    assert scalars["ray/committed_batches"][-1][1] == scored
+    assert scalars["ray/explored_steps_per_s"][-1][1] > 0
+    return record
+
+
+def test_two_node_cluster_places_an_explorer_on_each_node(tmp_path):
+    cluster = Cluster(initialize_head=True, head_node_args={
+        "num_cpus": 2, "include_dashboard": False, "object_store_memory": 96 * 2**20})
+    try:
+        cluster.add_node(num_cpus=2, object_store_memory=96 * 2**20)
+        cluster.wait_for_nodes(timeout=60)
+        ray.init(address=cluster.address, logging_level="ERROR")
+        nodes = {n["NodeID"] for n in ray.nodes() if n["Alive"]}
+        assert len(nodes) == 2
+        config = ued_config("accel", **{"ray.enabled": "true", "ray.explorers": 2})
+        out = io.StringIO()
+        run_dir = train(config, run_dir=tmp_path / "two-nodes", stream=out, max_updates=STEPS)
+        record = check_run(run_dir, STEPS)
+        placement = record["placement"]
+        assert set(placement.values()) <= nodes
+        assert {placement["explorer-0"], placement["explorer-1"]} == nodes  # one per node
+        assert "explorers 2" in out.getvalue()
+    finally:
+        ray.shutdown()
+        cluster.shutdown()
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def ray_command() -> str:
+    beside = Path(sys.executable).parent / "ray"
+    found = str(beside) if beside.exists() else shutil.which("ray")
+    assert found, "the ray command line is not installed (pip install -e '.[ray]')"
+    return found
+
+
+def stop_session(process: subprocess.Popen, grace_s: float = 10.0) -> None:
+    """Stop a `ray start --block` and everything it started (its own process group)."""
+    if process.poll() is None:
+        os.killpg(process.pid, signal.SIGTERM)
+        try:
+            process.wait(timeout=grace_s)
+        except subprocess.TimeoutExpired:
+            pass
+    try:
+        os.killpg(process.pid, signal.SIGKILL)  # what SIGTERM left (raylet, GCS)
+    except ProcessLookupError:
+        pass
+    process.wait(timeout=grace_s)
+
+
+@pytest.fixture
+def cli_cluster(tmp_path):
+    """A one-node Ray cluster started with `ray start --head`; yields its address."""
+    port = free_port()
+    log = open(tmp_path / "ray-head.log", "w")  # noqa: SIM115 (closed below)
+    env = {**os.environ, "RAY_AUTH_MODE": "token"}
+    head = subprocess.Popen(
+        [ray_command(), "start", "--head", f"--port={port}", "--num-cpus=2",
+         "--include-dashboard=false", "--disable-usage-stats", "--block"],
+        stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 90
+        while "Ray runtime started" not in (tmp_path / "ray-head.log").read_text():
+            assert head.poll() is None, (tmp_path / "ray-head.log").read_text()[-3000:]
+            assert time.monotonic() < deadline, "ray start --head did not start in 90 s"
+            time.sleep(0.5)
+        yield f"127.0.0.1:{port}"
+    finally:
+        stop_session(head)
+        log.close()
+        forget_address(f"127.0.0.1:{port}")
+
+
+def forget_address(address: str) -> None:
+    """Remove the address `ray start` left in /tmp/ray/ray_current_cluster (as `ray stop`
+    does), where it is this head's: a later plain `ray.init()` would try to join it."""
+    from ray._common.utils import get_ray_address_file
+
+    path = get_ray_address_file(None)
+    if os.path.exists(path) and open(path).read().strip() == address:
+        os.unlink(path)
+
+
+def test_tabx_train_joins_a_cluster_started_with_the_ray_command(tmp_path, cli_cluster):
+    config_file = tmp_path / "tiny.yaml"
+    config_file.write_text(ued_config("robust_plr", **{"ray.explorers": 1}).to_yaml())
+    run_dir = tmp_path / "joined"
+    env = {**os.environ, "RAY_AUTH_MODE": "token"}  # the CLI cluster checks the token
+    done = subprocess.run(
+        [sys.executable, "-m", "tabx_ued", "train", str(config_file), "--ray", "--address",
+         cli_cluster, "--run-dir", str(run_dir), "--max-updates", str(STEPS)],
+        capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stdout.strip().endswith(str(run_dir))
+    assert "on Ray (asynchronous, 1 explorers" in done.stderr
+    record = check_run(run_dir, STEPS)
+    assert set(record["placement"]) == {"service", "learner", "explorer-0"}
+
+
+def test_joining_an_address_where_no_cluster_runs_is_a_clear_error(tmp_path):
+    config_file = tmp_path / "tiny.yaml"
+    config_file.write_text(ued_config("robust_plr").to_yaml())
+    done = subprocess.run(
+        [sys.executable, "-m", "tabx_ued", "train", str(config_file), "--ray", "--address",
+         f"127.0.0.1:{free_port()}", "--run-dir", str(tmp_path / "never")],
+        capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr[-3000:]
+    assert "ray.address: no Ray head answers at 127.0.0.1:" in done.stderr
+    assert not (tmp_path / "never").exists()  # no run folder for a run that never started
