@@ -143,7 +143,7 @@ def test_ued_bench_measures_the_same_work_on_both_drivers():
     out = io.StringIO()
     results = run_ued_bench(ued_config("accel"), explorers=[1], warmup=2, steps=3, stream=out)
     assert [r.label for r in results] == ["local", "ray, 0 explorers, deterministic",
-                                          "ray, 1 explorers"]
+                                          "ray, 1 explorer"]
     local, deterministic, asynchronous = results
     # The deterministic schedule replays the local driver's steps: the same branches, the
     # same env steps trained and explored.
@@ -155,7 +155,7 @@ def test_ued_bench_measures_the_same_work_on_both_drivers():
     assert 0 < asynchronous.learner_busy_fraction <= 1
     assert ray_overhead(results) is not None
     table = format_table(results)
-    assert "Ray overhead on the local driver's work" in table and "ray, 1 explorers" in table
+    assert "Ray overhead on the local driver's work" in table and "ray, 1 explorer " in table
     assert out.getvalue().count("env steps/s") == 3  # one progress line per setting
 
 

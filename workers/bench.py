@@ -6,7 +6,9 @@ and compilation), then `--steps` timed steps, on
 
 - the local driver: every worker in this process, one after another;
 - the Ray driver's deterministic schedule with 0 Explorers: the local driver's very steps over
-  actors, so its seconds per step against the local driver's are the Ray path's overhead;
+  actors. The two are timed in turn, step by step (step `i` of one, then of the other), so
+  the machine's slow minutes fall on both; the median of their per-step ratios is the Ray
+  path's overhead;
 - the Ray driver's asynchronous schedule with each `--explorers` count (0: the learner actor
   scores the new levels too), its actors started afresh for each count.
 
@@ -34,6 +36,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 import jax
+import numpy as np
 
 from tabx.bench_cli import int_at_least, int_list
 from tabx.errors import UserError
@@ -59,6 +62,7 @@ class UEDBenchResult:
     staleness: dict[str, int] = field(default_factory=dict)
     rescored: int = 0
     branches: dict[str, int] = field(default_factory=dict)
+    step_seconds: list[float] = field(default_factory=list)  # per timed step (not async)
 
     @property
     def trained_per_s(self) -> float:
@@ -72,9 +76,10 @@ class UEDBenchResult:
     def label(self) -> str:
         if self.driver == "local":
             return "local"
+        explorers = f"{self.explorers} explorer{'' if self.explorers == 1 else 's'}"
         if self.driver == "ray-deterministic":
-            return f"ray, {self.explorers} explorers, deterministic"
-        return f"ray, {self.explorers} explorers"
+            return f"ray, {explorers}, deterministic"
+        return f"ray, {explorers}"
 
     def to_json(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)
@@ -109,97 +114,138 @@ class Warmup:
                                             and self.seen >= self.expected)
 
 
-def bench_local(config: TrainConfig, warmup: int, steps: int) -> UEDBenchResult:
-    """The local driver's step loop, in this process."""
-    run, ppo = UEDRun.local(config)
-    key = jax.random.key(config.seed)
-    key, k_init = jax.random.split(key)
-    learner = Learner(ppo, ppo.init(k_init))
-    warm = Warmup(run, warmup)
-    step = 0
-    while not warm.done:
-        key, k_step = jax.random.split(key)
-        warm.saw(run.step(learner, step, k_step)[0])
-        step += 1
-    jax.block_until_ready(learner.train_state)
-    run.sfl_scoring_steps = 0
-    branches: Counter = Counter()
-    t0 = time.perf_counter()
-    first = step
-    for step in range(first, first + steps):
-        key, k_step = jax.random.split(key)
-        branches[run.step(learner, step, k_step)[0]] += 1
-    jax.block_until_ready(learner.train_state)
-    seconds = time.perf_counter() - t0
-    trained, explored = _steps_of(run, config, branches)
-    return UEDBenchResult("local", 0, config.ued.method, steps, seconds, trained, explored,
-                          learner_busy_fraction=1.0, wait_for_levels_s=0.0,
-                          branches={b.name.lower(): n for b, n in branches.items()})
+class LocalStepper:
+    """The local driver's step loop, in this process, one step per call."""
+
+    driver = "local"
+
+    def __init__(self, config: TrainConfig):
+        self.config = config
+        self.run, ppo = UEDRun.local(config)
+        self.key, k_init = jax.random.split(jax.random.key(config.seed))
+        self.learner = Learner(ppo, ppo.init(k_init))
+        self.index = 0
+
+    def step(self) -> Any:
+        self.key, k_step = jax.random.split(self.key)
+        branch = self.run.step(self.learner, self.index, k_step)[0]
+        jax.block_until_ready(self.learner.train_state)
+        self.index += 1
+        return branch
+
+    def close(self) -> None:
+        pass
 
 
-def bench_ray(ray: Any, config: TrainConfig, warmup: int, steps: int,
-              stream: TextIO) -> UEDBenchResult:
-    """The Ray driver on fresh actors: its asynchronous schedule, or with `ray.deterministic`
-    the local driver's schedule over the actors (the same work as `bench_local`)."""
-    from workers.ray_driver import (
-        AsyncRun,
-        Blocking,
-        ExplorerPool,
-        RayStats,
-        RemoteLearner,
-        start_workers,
-    )
+class RayStepper:
+    """The Ray driver on fresh actors, one step per call: its asynchronous schedule, or with
+    `ray.deterministic` the local driver's schedule over the actors (the local work)."""
 
-    workers = start_workers(ray, config, stream)
-    try:
-        run = UEDRun(config, Blocking(ray, workers.service), ExplorerPool(ray, workers.scorers()))
-        key = jax.random.key(config.seed)
-        key, k_init = jax.random.split(key)
-        ray.get(workers.learner.init.remote(k_init))
-        learner = RemoteLearner(ray, workers.learner)
-        schedule = AsyncRun(ray, config, run, learner, workers)
-        if config.ray.deterministic:
-            def step_once(step: int, key: jax.Array) -> Any:
-                return run.step(learner, step, key)[0]
+    def __init__(self, ray: Any, config: TrainConfig, stream: TextIO):
+        from workers.ray_driver import (
+            AsyncRun,
+            Blocking,
+            ExplorerPool,
+            RemoteLearner,
+            start_workers,
+        )
+
+        self.ray, self.config = ray, config
+        self.workers = start_workers(ray, config, stream)
+        self.driver = "ray-deterministic" if config.ray.deterministic else "ray"
+        self.run = UEDRun(config, Blocking(ray, self.workers.service),
+                          ExplorerPool(ray, self.workers.scorers()))
+        self.key, k_init = jax.random.split(jax.random.key(config.seed))
+        ray.get(self.workers.learner.init.remote(k_init))
+        self.learner = RemoteLearner(ray, self.workers.learner)
+        self.schedule = AsyncRun(ray, config, self.run, self.learner, self.workers)
+        self.index = 0
+
+    def step(self) -> Any:
+        self.key, k_step = jax.random.split(self.key)
+        if self.config.ray.deterministic:
+            branch = self.run.step(self.learner, self.index, k_step)[0]
         else:
-            def step_once(step: int, key: jax.Array) -> Any:
-                return schedule.step(step, key)[0]
-        warm = Warmup(run, warmup)
-        step = 0
-        while not warm.done:
-            key, k_step = jax.random.split(key)
-            warm.saw(step_once(step, k_step))
-            step += 1
-        schedule.drain()
-        ray.get(workers.learner.version.remote())  # the learner is idle
-        schedule.stats = RayStats()
-        run.sfl_scoring_steps = 0
+            branch = self.schedule.step(self.index, k_step)[0]
+        self.index += 1
+        return branch
+
+    def settle(self) -> None:
+        """Wait for the batches in flight and the learner."""
+        self.schedule.drain()
+        self.ray.get(self.workers.learner.version.remote())
+
+    def close(self) -> None:
+        for actor in self.workers.all():
+            self.ray.kill(actor)
+
+
+def _warm_up(stepper: LocalStepper | RayStepper, warmup: int) -> None:
+    warm = Warmup(stepper.run, warmup)
+    while not warm.done:
+        warm.saw(stepper.step())
+    if isinstance(stepper, RayStepper):
+        stepper.settle()
+    stepper.run.sfl_scoring_steps = 0
+
+
+def _result(stepper: LocalStepper | RayStepper, branches: Counter,
+            step_seconds: list[float], seconds: float) -> UEDBenchResult:
+    config = stepper.config
+    steps = sum(branches.values())
+    counts = {b.name.lower(): n for b, n in branches.items()}
+    explorers = len(stepper.workers.explorers) if isinstance(stepper, RayStepper) else 0
+    if stepper.driver != "ray":  # every step waited for its work: the local accounting
+        trained, explored = _steps_of(stepper.run, config, branches)
+        busy = 1.0 if stepper.driver == "local" else float("nan")
+        return UEDBenchResult(stepper.driver, explorers, config.ued.method, steps, seconds,
+                              trained, explored, learner_busy_fraction=busy,
+                              wait_for_levels_s=0.0, branches=counts, step_seconds=step_seconds)
+    stats = stepper.schedule.stats
+    return UEDBenchResult(
+        "ray", explorers, config.ued.method, steps, seconds, stats.trained_steps,
+        stats.explored_steps + stepper.run.sfl_scoring_steps,
+        learner_busy_fraction=stats.learner_busy_s / seconds,
+        wait_for_levels_s=stats.wait_for_levels_s,
+        staleness={str(k): v for k, v in sorted(stats.staleness.items())},
+        rescored=stats.rescored, branches=counts)
+
+
+def bench_interleaved(steppers: list[LocalStepper | RayStepper], warmup: int,
+                      steps: int) -> list[UEDBenchResult]:
+    """Warm every stepper up, then time them step by step in turn (step `i` of each, then
+    step `i + 1`), so that a slow minute of the machine slows all of them alike."""
+    for stepper in steppers:
+        _warm_up(stepper, warmup)
+    branches = [Counter() for _ in steppers]
+    step_seconds: list[list[float]] = [[] for _ in steppers]
+    for _ in range(steps):
+        for i, stepper in enumerate(steppers):
+            started = time.perf_counter()
+            branches[i][stepper.step()] += 1
+            step_seconds[i].append(time.perf_counter() - started)
+    return [_result(s, b, t, sum(t)) for s, b, t in zip(steppers, branches, step_seconds,
+                                                          strict=True)]
+
+
+def bench_async(ray: Any, config: TrainConfig, warmup: int, steps: int,
+                stream: TextIO) -> UEDBenchResult:
+    """The asynchronous schedule on fresh actors, timed from the first timed step until every
+    batch it issued is committed."""
+    from workers.ray_driver import RayStats
+
+    stepper = RayStepper(ray, config, stream)
+    try:
+        _warm_up(stepper, warmup)
+        stepper.schedule.stats = RayStats()
         branches: Counter = Counter()
-        first = step
-        for step in range(first, first + steps):
-            key, k_step = jax.random.split(key)
-            branches[step_once(step, k_step)] += 1
-        schedule.drain()
-        ray.get(workers.learner.version.remote())
-        stats = schedule.stats
-        seconds = time.perf_counter() - stats.t0
-        counts = {b.name.lower(): n for b, n in branches.items()}
-        if config.ray.deterministic:  # every call waited: the learner's share is unknown
-            trained, explored = _steps_of(run, config, branches)
-            return UEDBenchResult("ray-deterministic", len(workers.explorers),
-                                  config.ued.method, steps, seconds, trained, explored,
-                                  learner_busy_fraction=float("nan"), wait_for_levels_s=0.0,
-                                  branches=counts)
-        return UEDBenchResult(
-            "ray", len(workers.explorers), config.ued.method, steps, seconds,
-            stats.trained_steps, stats.explored_steps + run.sfl_scoring_steps,
-            learner_busy_fraction=stats.learner_busy_s / seconds,
-            wait_for_levels_s=stats.wait_for_levels_s,
-            staleness={str(k): v for k, v in sorted(stats.staleness.items())},
-            rescored=stats.rescored, branches=counts)
+        for _ in range(steps):
+            branches[stepper.step()] += 1
+        stepper.settle()
+        seconds = time.perf_counter() - stepper.schedule.stats.t0
+        return _result(stepper, branches, [], seconds)
     finally:
-        for actor in workers.all():
-            ray.kill(actor)
+        stepper.close()
 
 
 def run_ued_bench(config: TrainConfig, explorers: list[int], warmup: int, steps: int,
@@ -208,7 +254,7 @@ def run_ued_bench(config: TrainConfig, explorers: list[int], warmup: int, steps:
     from workers.ray_driver import connect
 
     stream = sys.stderr if stream is None else stream
-    results = []
+    results: list[UEDBenchResult] = []
 
     def report(result: UEDBenchResult, started: float) -> None:
         stream.write(f"  {result.label}: {result.trained_per_s:,.0f} trained + "
@@ -218,41 +264,62 @@ def run_ued_bench(config: TrainConfig, explorers: list[int], warmup: int, steps:
                      f"({time.perf_counter() - started:.0f} s)\n")
         stream.flush()
 
-    ray_settings = ([(0, True)] if local else []) + [(n, False) for n in explorers]
-    labels = (["local"] if local else []) + [
-        UEDBenchResult("ray-deterministic" if det else "ray", n, "", 1, 1, 0, 0, 0, 0).label
-        for n, det in ray_settings]
+    def label(driver: str, n: int) -> str:
+        return UEDBenchResult(driver, n, "", 1, 1, 0, 0, 0, 0).label
+
+    labels = ([label("local", 0), label("ray-deterministic", 0)] if local else []) + [
+        label("ray", n) for n in explorers]
     stream.write(f"bench ued: {config.ued.method}, at least {warmup} warm-up + {steps} timed "
                  f"steps of {config.learner.steps_per_update:,} env steps; settings: "
                  f"{'; '.join(labels)}\n")
     stream.flush()
-    if local:
-        started = time.perf_counter()
-        results.append(bench_local(config, warmup, steps))
-        report(results[-1], started)
-    if ray_settings:
-        ray, connected_here = connect(config.ray)
-        try:
-            for n, deterministic in ray_settings:
-                started = time.perf_counter()
-                setting = dataclasses.replace(config, ray=dataclasses.replace(
-                    config.ray, enabled=True, explorers=n, deterministic=deterministic)
-                                              ).validate()
-                results.append(bench_ray(ray, setting, warmup, steps, stream))
-                report(results[-1], started)
-        finally:
-            if connected_here:
-                ray.shutdown()
+    if not config.ray.address and not config.ray.num_cpus:
+        # A Ray started here gets a logical CPU per actor that reserves one (a learner and
+        # the most Explorers asked for), whatever the core count: the bench measures sharing.
+        config = dataclasses.replace(config, ray=dataclasses.replace(
+            config.ray, num_cpus=max([0, *explorers]) + 1))
+
+    def setting(n: int, deterministic: bool) -> TrainConfig:
+        return dataclasses.replace(config, ray=dataclasses.replace(
+            config.ray, enabled=True, explorers=n, deterministic=deterministic)).validate()
+
+    ray, connected_here = connect(config.ray)
+    try:
+        if local:
+            # The local driver and the Ray driver's deterministic schedule with 0 Explorers
+            # play the same steps; interleaved, their ratio is the Ray path's overhead.
+            started = time.perf_counter()
+            steppers: list[LocalStepper | RayStepper] = [LocalStepper(config)]
+            try:
+                steppers.append(RayStepper(ray, setting(0, True), stream))
+                results += bench_interleaved(steppers, warmup, steps)
+            finally:
+                for stepper in steppers:
+                    stepper.close()
+            for result in results:
+                report(result, started)
+        for n in explorers:
+            started = time.perf_counter()
+            results.append(bench_async(ray, setting(n, False), warmup, steps, stream))
+            report(results[-1], started)
+    finally:
+        if connected_here:
+            ray.shutdown()
     return results
 
 
 def ray_overhead(results: list[UEDBenchResult]) -> float | None:
     """The Ray path's seconds over the local driver's on the same work, minus one: the
-    deterministic schedule with 0 Explorers plays exactly the local driver's steps."""
+    deterministic schedule with 0 Explorers plays exactly the local driver's steps, so step
+    `i` does the same work on both; the median of the per-step ratios resists the machine's
+    noise (a step slowed by another process) better than the ratio of the totals."""
     local = next((r for r in results if r.driver == "local"), None)
     same = next((r for r in results if r.driver == "ray-deterministic"), None)
     if local is None or same is None:
         return None
+    if len(local.step_seconds) == len(same.step_seconds) > 0:
+        return float(np.median(np.asarray(same.step_seconds)
+                               / np.asarray(local.step_seconds))) - 1.0
     return (same.seconds / same.steps) / (local.seconds / local.steps) - 1.0
 
 
@@ -261,18 +328,19 @@ def _percent(fraction: float) -> str:
 
 
 def format_table(results: list[UEDBenchResult]) -> str:
-    lines = [f"{'setting':<20} {'trained/s':>10} {'explored/s':>11} {'total/s':>9} "
+    width = max([len("setting"), *(len(r.label) for r in results)])
+    lines = [f"{'setting':<{width}} {'trained/s':>10} {'explored/s':>11} {'total/s':>9} "
              f"{'busy':>5} {'wait s':>7} {'s/step':>7}  staleness"]
     for r in results:
         lag = " ".join(f"{k}:{v}" for k, v in r.staleness.items()) or "-"
-        lines.append(f"{r.label:<20} {r.trained_per_s:>10,.0f} {r.explored_per_s:>11,.0f} "
+        lines.append(f"{r.label:<{width}} {r.trained_per_s:>10,.0f} {r.explored_per_s:>11,.0f} "
                      f"{r.trained_per_s + r.explored_per_s:>9,.0f} "
                      f"{_percent(r.learner_busy_fraction):>5} {r.wait_for_levels_s:>7.1f} "
                      f"{r.seconds / r.steps:>7.3f}  {lag}")
     overhead = ray_overhead(results)
     if overhead is not None:
         lines.append(f"Ray overhead on the local driver's work (0 explorers, deterministic): "
-                     f"{overhead:+.1%} seconds per step")
+                     f"{overhead:+.1%} seconds per step (median of the paired steps)")
     return "\n".join(lines)
 
 

@@ -33,6 +33,7 @@ Two modes (`ray.deterministic`):
 
 from __future__ import annotations
 
+import logging
 import os
 import socket
 import sys
@@ -95,6 +96,10 @@ def connect(section: RaySection) -> tuple[Any, bool]:
         if section.num_cpus:
             kwargs["num_cpus"] = section.num_cpus
         kwargs["object_store_memory"] = section.object_store_mb * 2**20
+        # A Ray of our own keeps Ray's default token authentication; its notice about that
+        # default is noise on every run.
+        logging.getLogger("ray._private.authentication.authentication_token_setup").setLevel(
+            logging.ERROR)
     try:
         with warnings.catch_warnings():
             # Ray starts its processes with fork + exec, which is safe beside JAX's threads.
