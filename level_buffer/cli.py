@@ -112,14 +112,19 @@ def level_json(buf: LevelBuffer, level_id: int) -> dict[str, Any]:
 
 def cmd_inspect(args: argparse.Namespace) -> int:
     buf = _load(args.file)
+    print(summary(buf, args.file, Path(args.file).stat().st_size))
+    return 0
+
+
+def summary(buf: LevelBuffer, name: str, size_bytes: int) -> str:
+    """What `tabx buffer inspect` prints of a buffer (`name`: where it came from)."""
     cfg = buf.config
-    size_bytes = Path(args.file).stat().st_size
     prio = (f"rank temperature {cfg.temperature:g}" if cfg.prioritization == "rank"
             else f"top-{cfg.topk_k}")
     dup = ("off" if not cfg.duplicate_check else
            f"near (atol {cfg.near_duplicate_atol:g})" if cfg.near_duplicates else "exact")
     lines = [
-        f"{args.file}: {buf.size} / {buf.capacity} levels ({100 * buf.size / buf.capacity:.1f}% "
+        f"{name}: {buf.size} / {buf.capacity} levels ({100 * buf.size / buf.capacity:.1f}% "
         f"full), format {FORMAT_VERSION}, {size_bytes / 2**20:.2f} MiB",
         f"clock {buf.clock}, next id {buf.next_id}, {len(buf.spec.paths)} level fields",
         f"config: {prio}, staleness coeff {cfg.staleness_coeff:g}, replay prob "
@@ -127,8 +132,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         "counters: " + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in buf.stats.items()),
     ]
     if buf.size == 0:
-        print("\n".join(lines + ["(empty buffer)"]))
-        return 0
+        return "\n".join(lines + ["(empty buffer)"])
     lines.append("")
     lines.append(" " * 12 + "".join(name.rjust(10) for name, _ in QUANTILES) + "mean".rjust(10))
     for name, values in (("score", buf.column("score")),
@@ -165,8 +169,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
                         else ""))
     else:
         lines.append("policy versions: none recorded")
-    print("\n".join(lines))
-    return 0
+    return "\n".join(lines)
 
 
 def cmd_top(args: argparse.Namespace) -> int:

@@ -4,6 +4,7 @@
     tabx buffer ...                                               level_buffer.cli
     tabx levels sample, tabx plot, tabx bench train               ued
     tabx train, tabx eval                                         tabx_ued.run_commands
+    tabx runs status | buffer                                     tabx_ued.runs_commands
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import sys
 
 from level_buffer import cli as buffer_cli
 from tabx import cli as simulator_cli
-from tabx_ued import run_commands
+from tabx_ued import run_commands, runs_commands
 from ued import levels_cli, plot
 from ued.learners.bench import add_train_bench
 from workers.bench import add_ued_bench
@@ -23,6 +24,7 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     simulator_cli.add_simulator_commands(subparsers, bench_extra=[add_train_bench, add_ued_bench])
     buffer_cli.add_parser(subparsers)
     run_commands.add_parser(subparsers)
+    runs_commands.add_parser(subparsers)
     levels_cli.add_parser(subparsers)
     plot.add_parser(subparsers)
 

@@ -1,7 +1,7 @@
 """`tabx train` and `tabx eval`: runs on the command line (a registrar of `tabx_ued.cli`).
 
     tabx train configs/marl/mappo_crossfire.yaml [KEY=VALUE ...]
-    tabx train --resume RUN_DIR
+    tabx train --resume RUN_DIR [--ray [--address A] [ray.KEY=VALUE ...]]
     tabx eval RUN_DIR [--scenario NAME] [--enemy heuristic:medium] [--episodes K] [--gif PATH]
     tabx eval --ally RUN_A --enemy RUN_B [--scenario NAME]
     tabx eval RUN_DIR --suite NAME_OR_FILE [--episodes K] [--json OUT] [--seed S]
@@ -49,9 +49,13 @@ def cmd_train(args: argparse.Namespace) -> int:
         ray_overrides.append(f"ray.address={args.address}")
     try:
         if args.resume:
-            if config_path or overrides:
+            if config_path or any(not o.startswith("ray.") for o in overrides):
                 raise UserError("--resume continues a run with its own config.yaml: give no "
-                                "config file or overrides")
+                                "config file, and overrides of the ray: section only "
+                                "(e.g. --ray ray.explorers=4)")
+            if overrides and not args.ray:
+                raise UserError("ray.* overrides on --resume go with --ray")
+            ray_overrides = [*overrides, *ray_overrides]
             ray = None
             if ray_overrides:
                 from ued.config import apply_overrides, config_from_dict

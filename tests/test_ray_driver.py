@@ -120,6 +120,10 @@ def test_ray_settings_are_checked():
         ray_config("dr", **{"ray.max_inflight": 0})
     with pytest.raises(ConfigError, match="ray.learner_gpus"):
         ray_config("dr", **{"ray.learner_gpus": -2})
+    with pytest.raises(ConfigError, match="ray.actor_restarts: must be -1"):
+        ray_config("dr", **{"ray.actor_restarts": -3})
+    with pytest.raises(ConfigError, match="ray.chaos_kill_explorer_every: must be >= 0"):
+        ray_config("dr", **{"ray.chaos_kill_explorer_every": -1})
 
 
 def test_a_run_that_cannot_be_placed_is_refused(tmp_path):
@@ -202,3 +206,117 @@ def test_eval_suite_on_a_ray_actor_gives_the_local_table(tmp_path, capsys):
                            "--address joins a Ray cluster: give --ray too")):
         assert main(argv) == 2
         assert message in capsys.readouterr().err
+
+
+def test_an_explorer_killed_mid_batch_restarts_and_its_batches_are_reissued(tmp_path,
+                                                                              monkeypatch):
+    # SIGKILL the Explorer's own process right after the third batch went to it: that batch
+    # (and any other in flight) dies with it, must be re-issued with the current policy to
+    # the restarted Explorer, and committed exactly once.
+    import signal
+
+    from workers.ray_driver import AsyncRun
+
+    killed: list[int] = []
+    submitted = {"n": 0}
+    original = AsyncRun._submit
+
+    def submit_then_kill(self, batch):
+        actor = self.scorers[batch.explorer]
+        if submitted["n"] == 0:
+            killed.append(ray.get(actor.pid.remote()))  # before any batch: answers at once
+        original(self, batch)
+        submitted["n"] += 1
+        if submitted["n"] == 3:
+            os.kill(killed[0], signal.SIGKILL)
+
+    monkeypatch.setattr(AsyncRun, "_submit", submit_then_kill)
+    config = ray_config("robust_plr", **{"ray.explorers": 1, "ray.max_inflight": 2,
+                                         "ued.replay_prob": 0.5, "ued.buffer_size": 32,
+                                         "ued.min_fill_ratio": 0.25})
+    out = io.StringIO()
+    run_dir = train(config, run_dir=tmp_path / "killed", stream=out, max_updates=10)
+    record = json.loads((run_dir / RAY_RECORD).read_text())
+    assert record["restarts"] == {"explorer-0": 1}, out.getvalue()[-2000:]
+    assert record["reissued"] >= 1
+    assert "ray: explorer-0 died" in out.getvalue() and "re-issued" in out.getvalue()
+    assert record["ledger"] == {"committed": 10}  # nothing lost
+    new = record["branches"]["new"]
+    assert record["committed_batches"] == new
+    buffer = LevelBuffer.load(run_dir / LEVELS_DIR / "buffer-10.msgpack")
+    assert buffer.stats["insert_attempts"] == 4 * new  # nothing counted twice
+    with pytest.raises(ProcessLookupError):
+        os.kill(killed[0], 0)  # the process really died
+
+
+def test_chaos_kills_leave_the_deterministic_run_equal_to_the_local_one(tmp_path):
+    method = "accel"
+    local = train(ued_config(method), run_dir=tmp_path / "local", stream=io.StringIO(),
+                  max_updates=STEPS)
+    out = io.StringIO()
+    remote = train(ray_config(method, **{"ray.deterministic": "true", "ray.explorers": 2,
+                                         "ray.chaos_kill_explorer_every": 2}),
+                   run_dir=tmp_path / "chaos", stream=out, max_updates=STEPS)
+    record = json.loads((remote / RAY_RECORD).read_text())
+    assert record["chaos_kills"] == (STEPS - 1) // 2  # after steps 2 and 4, not the last
+    assert "ray: chaos: killed explorer-0 after step 2" in out.getvalue()
+    assert "ray: chaos: killed explorer-1 after step 4" in out.getvalue()
+    state_a, key_a, _ = final_state(local, ued_config(method))
+    state_b, key_b, _ = final_state(remote, ued_config(method))
+    assert trees_equal(state_a.params, state_b.params) and np.array_equal(key_a, key_b)
+    for name in sorted(p.name for p in (local / LEVELS_DIR).iterdir()):
+        assert (local / LEVELS_DIR / name).read_bytes() == (remote / LEVELS_DIR / name
+                                                            ).read_bytes(), name
+
+
+def test_a_running_ray_run_can_be_inspected_from_another_process(tmp_path):
+    from tabx_ued.cli import main
+
+    run_dir = tmp_path / "live"
+    seen = {}
+
+    def look(done, train_state, values):
+        if done == 3:  # the run is going: ask from outside, as a user would
+            for what in ("buffer", "status"):
+                seen[what] = subprocess.run(
+                    [sys.executable, "-m", "tabx_ued", "runs", what, str(run_dir)],
+                    capture_output=True, text=True, timeout=120)
+
+    config = ray_config("robust_plr", **{"ray.explorers": 1, "run.log_every": 1})
+    train(config, run_dir=run_dir, stream=io.StringIO(), max_updates=5, callback=look)
+    buffer = seen["buffer"]
+    assert buffer.returncode == 0, buffer.stderr[-2000:]
+    assert f"{run_dir} (live): " in buffer.stdout and " / 8 levels" in buffer.stdout
+    assert "policy versions:" in buffer.stdout  # the summary of tabx buffer inspect
+    status = seen["status"]
+    assert status.returncode == 0, status.stderr[-2000:]
+    assert f"{run_dir}: running; asynchronous schedule; step 3 of 10" in status.stdout
+    assert "explorer-0" in status.stdout and "learner" in status.stdout
+    # Over: the record says so, and the live buffer points to the snapshots.
+    record = json.loads((run_dir / RAY_RECORD).read_text())
+    assert record["status"] == "finished" and record["steps"] == [0, 5]
+    assert main(["runs", "buffer", str(run_dir)]) == 2
+    assert main(["runs", "status", str(tmp_path / "nowhere")]) == 2
+
+
+def test_a_ray_run_resumed_with_other_explorers_equals_an_uninterrupted_local_run(tmp_path):
+    # 3 steps on 2 Explorers, then 3 more on 1 (as `tabx train --resume RUN --ray
+    # ray.explorers=1` does), deterministic: the local driver's 6 steps, byte for byte.
+    import dataclasses
+
+    method = "accel"
+    local = train(ued_config(method), run_dir=tmp_path / "local", stream=io.StringIO(),
+                  max_updates=STEPS)
+    config = ray_config(method, **{"ray.deterministic": "true", "ray.explorers": 2})
+    remote = train(config, run_dir=tmp_path / "ray", stream=io.StringIO(), max_updates=3)
+    fewer = dataclasses.replace(config.ray, explorers=1)
+    train(run_dir=remote, resume=True, ray=fewer, stream=io.StringIO(), max_updates=3)
+    record = json.loads((remote / RAY_RECORD).read_text())
+    assert record["steps"] == [3, STEPS] and set(record["placement"]) == {
+        "service", "learner", "explorer-0"}
+    state_a, key_a, step_a = final_state(local, ued_config(method))
+    state_b, key_b, step_b = final_state(remote, ued_config(method))
+    assert step_a == step_b == STEPS
+    assert trees_equal(state_a.params, state_b.params) and np.array_equal(key_a, key_b)
+    assert (local / LEVELS_DIR / f"buffer-{STEPS}.msgpack").read_bytes() == (
+        remote / LEVELS_DIR / f"buffer-{STEPS}.msgpack").read_bytes()

@@ -41,6 +41,10 @@ def test_train_reports_config_errors_naming_the_key(capsys, tmp_path, tiny_yaml)
     assert code == 2 and "give a config file" in err
     code, _, err = run_cli(capsys, "train", str(tiny_yaml), "--resume", str(tmp_path))
     assert code == 2 and "--resume continues a run with its own config.yaml" in err
+    code, _, err = run_cli(capsys, "train", "--resume", str(tmp_path), "learner.lr=0.1")
+    assert code == 2 and "overrides of the ray: section only" in err
+    code, _, err = run_cli(capsys, "train", "--resume", str(tmp_path), "ray.explorers=2")
+    assert code == 2 and "ray.* overrides on --resume go with --ray" in err
     code, _, err = run_cli(capsys, "train", "--resume", str(tmp_path))
     assert code == 2 and "not a run folder" in err
     code, _, err = run_cli(capsys, "train", str(tmp_path / "missing.yaml"))

@@ -224,6 +224,8 @@ class RaySection:
     learner_gpus: float = -1.0  # GPUs of the learner actor; -1: one if the cluster has any
     num_cpus: int = 0  # CPUs of a Ray started here (0: Ray's own count)
     object_store_mb: int = 512  # object store of a Ray started here
+    actor_restarts: int = -1  # restarts of each Explorer and the Evaluator (-1: no limit)
+    chaos_kill_explorer_every: int = 0  # kill an Explorer every N steps (0: never)
 
     def validate(self, prefix: str = "ray") -> None:
         _check(self.explorers >= 0, f"{prefix}.explorers",
@@ -237,6 +239,10 @@ class RaySection:
         _check(self.num_cpus >= 0, f"{prefix}.num_cpus", f"must be >= 0, got {self.num_cpus}")
         _check(self.object_store_mb >= 64, f"{prefix}.object_store_mb",
                f"must be >= 64, got {self.object_store_mb}")
+        _check(self.actor_restarts >= -1, f"{prefix}.actor_restarts",
+               f"must be -1 (no limit) or >= 0, got {self.actor_restarts}")
+        _check(self.chaos_kill_explorer_every >= 0, f"{prefix}.chaos_kill_explorer_every",
+               f"must be >= 0 (0: never), got {self.chaos_kill_explorer_every}")
 
 
 @dataclass(frozen=True)

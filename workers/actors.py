@@ -58,6 +58,12 @@ class ActorBase:
     def ready(self) -> bool:
         return True
 
+    def pid(self) -> int:
+        """The actor's process id (tests kill it with SIGKILL)."""
+        import os
+
+        return os.getpid()
+
     def node(self) -> str:
         import ray
 
@@ -104,6 +110,11 @@ class LevelServiceActor(LevelService, ActorBase):
 
     def sample_learnable(self, key: jax.Array, n: int) -> EnvParams:
         return to_host(super().sample_learnable(key, n))
+
+    def buffer_bytes(self) -> bytes | None:
+        """The level buffer as it is now, in the level-buffer file format (`tabx runs
+        buffer`); None where the method keeps no buffer."""
+        return None if self.buffer is None else self.buffer.to_bytes()
 
 
 class ExplorerActor(ActorBase):

@@ -38,6 +38,7 @@ import os
 import socket
 import sys
 import time
+import uuid
 import warnings
 from collections import Counter, deque
 from dataclasses import dataclass, field
@@ -65,7 +66,8 @@ from workers.driver import Callback, Driver, RunStopped
 from workers.local import UEDRun, branch_text, level_summary
 
 RAY_ENV = {"RAY_USAGE_STATS_ENABLED": "0"}
-RAY_RECORD = "ray.json"  # in the run folder: where the actors ran, what was committed
+RAY_RECORD = "ray.json"  # in the run folder: where the actors run, what was committed
+RAY_NAMESPACE = "tabx-ued"  # of the named actors of runs (`tabx runs buffer` finds them)
 
 
 def import_ray() -> Any:
@@ -178,28 +180,48 @@ class Workers:
         """Who scores new levels: the Explorers, or the learner when there are none."""
         return self.explorers or [self.learner]
 
+    def scorer_names(self) -> list[str]:
+        return [f"explorer-{i}" for i in range(len(self.explorers))] or ["learner"]
 
-def start_workers(ray: Any, config: TrainConfig, stream: TextIO) -> Workers:
-    """The run's actors, constructed (their constructors build each one's part of the run)."""
+    def explorer_pool(self, ray: Any, deaths: ActorDeaths) -> ExplorerPool:
+        """The scorers for blocking calls; dead Explorers are waited for, the learner not."""
+        return ExplorerPool(ray, self.scorers(), self.scorer_names(),
+                            deaths if self.explorers else None)
+
+
+def start_workers(ray: Any, config: TrainConfig, stream: TextIO,
+                  run_name: str | None = None) -> Workers:
+    """The run's actors, constructed (their constructors build each one's part of the run).
+    With `run_name` they are named actors, `RUN_NAME/ROLE` in `RAY_NAMESPACE`, so that another
+    process (`tabx runs buffer`) can reach them."""
     section = config.ray
     gpus = learner_gpus(ray, section)
     if not section.address:
         check_resources(ray, config, gpus)
 
-    def spawn(cls: type, name: str, *args: Any, num_gpus: float = 0.0, **options: Any) -> Any:
+    def spawn(cls: type, name: str, *args: Any, num_gpus: float = 0.0, restarts: int = 0,
+              **options: Any) -> Any:
+        # Calls are never retried by Ray (max_task_retries=0): a retry would reuse the
+        # original arguments, stale parameters included; the driver re-issues instead.
         remote = ray.remote(cls)
-        return remote.options(name=None, num_cpus=options.pop("num_cpus", 1),
-                              num_gpus=num_gpus, max_restarts=0, max_task_retries=0,
+        if run_name is not None:
+            options.update(name=f"{run_name}/{name}", namespace=RAY_NAMESPACE)
+        return remote.options(num_cpus=options.pop("num_cpus", 1),
+                              num_gpus=num_gpus, max_restarts=restarts, max_task_retries=0,
                               runtime_env={"env_vars": actor_env(num_gpus > 0)},
                               **options).remote(*args)
 
+    # Explorers and the evaluator hold nothing that a restart loses (their parameters come
+    # with each call); the service and the learner hold the run's state: they are not
+    # restarted, their death stops the run (resume from the last checkpoint).
+    restarts = section.actor_restarts
     # The service and evaluator are light: they share CPUs with the others.
     service = spawn(LevelServiceActor, "service", config, num_cpus=0)
     learner = spawn(LearnerActor, "learner", config, num_gpus=gpus, num_cpus=1 if not gpus else 0)
     explorers = [spawn(ExplorerActor, f"explorer-{i}", config, num_cpus=1,
-                       scheduling_strategy="SPREAD")
+                       scheduling_strategy="SPREAD", restarts=restarts)
                  for i in range(section.explorers)]
-    evaluator = (spawn(EvaluatorActor, "evaluator", config, num_cpus=0)
+    evaluator = (spawn(EvaluatorActor, "evaluator", config, num_cpus=0, restarts=restarts)
                  if config.ued.eval_suites else None)
     workers = Workers(service, learner, explorers, evaluator, gpus)
     wait_until_ready(ray, workers, stream)
@@ -289,37 +311,107 @@ class RemoteLearner:
         return self._ray.get(self._actor.train_state.remote())
 
 
+MAX_CALL_FAILURES = 5  # one call failing this often in a row stops the run
+
+
+def death_cause(err: Exception) -> str:
+    """The first line of an actor error: what Ray says killed it."""
+    text = str(err).strip()
+    return text.splitlines()[0] if text else type(err).__name__
+
+
+class ActorDeaths:
+    """Deaths of the restartable actors (Explorers, the Evaluator): counted by name and
+    logged with their cause on the run's stream."""
+
+    def __init__(self, stream: TextIO | None):
+        self.stream, self.count = stream, Counter()
+
+    def saw(self, name: str, err: Exception, then: str) -> None:
+        self.count[name] += 1
+        if self.stream is not None:
+            self.stream.write(f"ray: {name} died ({death_cause(err)}); {then}\n")
+            self.stream.flush()
+
+
+RESTART_TIMEOUT_S = 300.0  # an actor not back after this long stops the run
+
+
+def wait_restarted(ray: Any, actor: Any, name: str,
+                   timeout_s: float = RESTART_TIMEOUT_S) -> None:
+    """Wait until a restarting actor answers again: calls sent while it restarts fail ("the
+    actor is restarting") rather than wait for it."""
+    deadline = time.perf_counter() + timeout_s
+    while True:
+        try:
+            ray.get(actor.ready.remote(), timeout=max(deadline - time.perf_counter(), 0.1))
+            return
+        except ray.exceptions.ActorUnavailableError:
+            if time.perf_counter() > deadline:
+                break
+            time.sleep(0.2)
+        except (ray.exceptions.ActorDiedError, ray.exceptions.GetTimeoutError) as err:
+            raise RunStopped(f"{name} did not come back ({death_cause(err)}); raise "
+                             f"ray.actor_restarts (-1: no limit)") from err
+    raise RunStopped(f"{name} did not come back within {timeout_s:.0f} s")
+
+
+def call_restarting(ray: Any, actor: Any, name: str, method: str, args: tuple,
+                    deaths: ActorDeaths | None) -> Any:
+    """`actor.method(*args)`, waited for; where the actor dies (and `deaths` says it may be
+    restarted) the same call runs again on its restart. Without `deaths` an error raises."""
+    for _ in range(MAX_CALL_FAILURES):
+        try:
+            return ray.get(getattr(actor, method).remote(*args))
+        except ray.exceptions.RayActorError as err:
+            if deaths is None:
+                raise
+            deaths.saw(name, err, f"{method} runs again on its restart")
+            wait_restarted(ray, actor, name)
+            error = err
+    raise RunStopped(f"{name}: {method} failed {MAX_CALL_FAILURES} times in a row "
+                     f"({death_cause(error)})")
+
+
 class ExplorerPool:
     """Explorer actors behind `workers.explorer.Explorer`'s interface: calls go round-robin and
-    wait (the deterministic mode)."""
+    wait (the deterministic mode). A call whose Explorer dies runs again on its restart with
+    the same arguments: in this mode they are what the schedule asks for."""
 
-    def __init__(self, ray: Any, actors: list[Any]):
+    def __init__(self, ray: Any, actors: list[Any], names: list[str] | None = None,
+                 deaths: ActorDeaths | None = None):
         self._ray, self._actors, self._next = ray, actors, 0
+        self._names = names or [f"scorer-{i}" for i in range(len(actors))]
+        self._deaths = deaths
 
-    def _actor(self) -> Any:
-        actor = self._actors[self._next % len(self._actors)]
+    def _call(self, method: str, *args: Any) -> Any:
+        i = self._next % len(self._actors)
         self._next += 1
-        return actor
+        return call_restarting(self._ray, self._actors[i], self._names[i], method, args,
+                               self._deaths)
 
     def score_levels(self, params: ParamsRef, levels: Any, key: jax.Array, score: str,
                      max_returns: Any = None, num_steps: int | None = None) -> Any:
-        return self._ray.get(self._actor().score_levels.remote(params, levels, key, score,
-                                                              max_returns, num_steps))
+        return self._call("score_levels", params, levels, key, score, max_returns, num_steps)
 
     def learnability(self, params: ParamsRef, levels: Any, key: jax.Array,
                      num_steps: int | None = None) -> np.ndarray:
-        return self._ray.get(self._actor().learnability.remote(params, levels, key, num_steps))
+        return self._call("learnability", params, levels, key, num_steps)
 
 
 class RemoteEvaluator:
-    """The evaluator actor behind `workers.evaluator.Evaluator`'s interface (one per suite)."""
+    """The evaluator actor behind `workers.evaluator.Evaluator`'s interface (one per suite).
+    An evaluation whose actor dies runs again on its restart (same parameters and key)."""
 
-    def __init__(self, ray: Any, actor: Any, index: int, suite_name: str):
+    def __init__(self, ray: Any, actor: Any, index: int, suite_name: str,
+                 deaths: ActorDeaths | None = None):
         self._ray, self._actor, self.index = ray, actor, index
         self.suite = _SuiteName(suite_name)
+        self._deaths = deaths
 
     def evaluate(self, params: ParamsRef, key: jax.Array) -> Any:
-        return self._ray.get(self._actor.evaluate.remote(self.index, params, key))
+        return call_restarting(self._ray, self._actor, "evaluator", "evaluate",
+                               (self.index, params, key), self._deaths)
 
     def log(self, writer: SummaryWriter, step: int, result: Any) -> None:
         from workers.evaluator import log
@@ -348,6 +440,8 @@ class Batch:
     parent_ids: np.ndarray | None = None
     issued_s: float = field(default_factory=time.perf_counter)
     rescored: int = 0
+    incarnation: int = 0  # of the Explorer it was last submitted to
+    failures: int = 0  # submissions lost with a dead Explorer, in a row
 
 
 @dataclass
@@ -358,6 +452,8 @@ class RayStats:
     explored_steps: int = 0
     committed: int = 0
     rescored: int = 0
+    reissued: int = 0  # batches submitted again after their Explorer died
+    evaluations_lost: int = 0  # evaluations whose Evaluator died
     staleness: Counter = field(default_factory=Counter)  # version lag at commit -> batches
     learner_busy_s: float = 0.0
     wait_for_levels_s: float = 0.0
@@ -372,6 +468,7 @@ class RayStats:
                "ray/inflight_batches": float(inflight),
                "ray/committed_batches": float(self.committed),
                "ray/rescored": float(self.rescored),
+               "ray/reissued": float(self.reissued),
                "ray/learner_busy_fraction": self.learner_busy_s / elapsed,
                "ray/wait_for_levels_s": self.wait_for_levels_s}
         if lags:
@@ -396,12 +493,17 @@ class AsyncRun:
     """The asynchronous schedule over the actors of one run (see the module doc)."""
 
     def __init__(self, ray: Any, config: TrainConfig, run: UEDRun, learner: RemoteLearner,
-                 workers: Workers):
+                 workers: Workers, deaths: ActorDeaths | None = None):
         self.ray, self.config, self.run, self.learner, self.workers = (ray, config, run,
                                                                        learner, workers)
         self.scorers = workers.scorers()
+        self.names = workers.scorer_names()
+        self.deaths = ActorDeaths(None) if deaths is None else deaths
         self.pending: dict[Any, Batch] = {}
         self.inflight = [0] * len(self.scorers)
+        # Deaths seen per scorer: a result lost with incarnation k is one death only if the
+        # scorer is still at k (its other batches in flight died with the same process).
+        self.incarnation = [0] * len(self.scorers)
         self.stats = RayStats()
         self.ledger: dict[int, str] = {}  # step -> "issued" | "committed"
         self.recent_lags: deque[int] = deque(maxlen=1000)
@@ -428,7 +530,13 @@ class AsyncRun:
             if not ready:
                 keep.append((done, name, ref))
                 continue
-            result = self.ray.get(ref)
+            try:
+                result = self.ray.get(ref)
+            except self.ray.exceptions.RayActorError as err:
+                self.stats.evaluations_lost += 1
+                self.deaths.saw("evaluator", err, f"its evaluation of {name} after step "
+                                                  f"{done} is lost; the next runs on its restart")
+                continue
             log(writer, done * self.config.learner.steps_per_update, result)
             if stream is not None:
                 stream.write(f"  eval {name} after step {done}: mean win rate "
@@ -442,6 +550,9 @@ class AsyncRun:
         return {"committed_batches": self.stats.committed, "rescored": self.stats.rescored,
                 "staleness": {str(k): v for k, v in sorted(self.stats.staleness.items())},
                 "ledger": dict(states), "trained_steps": self.stats.trained_steps,
+                "reissued": self.stats.reissued,
+                "evaluations_lost": self.stats.evaluations_lost,
+                "restarts": dict(sorted(self.deaths.count.items())),
                 "explored_steps": self.stats.explored_steps,
                 "learner_busy_s": self.stats.learner_busy_s,
                 "wait_for_levels_s": self.stats.wait_for_levels_s}
@@ -464,6 +575,7 @@ class AsyncRun:
                                         None, None)
         self.pending[ref] = batch
         self.inflight[batch.explorer] += 1
+        batch.incarnation = self.incarnation[batch.explorer]
 
     def explore(self, step: int, branch: Branch, levels_ref: Any, key: jax.Array,
                 parent_ids: np.ndarray | None = None) -> None:
@@ -484,7 +596,12 @@ class AsyncRun:
         for ref in ready:
             batch = self.pending.pop(ref)
             self.inflight[batch.explorer] -= 1
-            _, scores, best = self.ray.get(ref)
+            try:
+                _, scores, best = self.ray.get(ref)
+            except self.ray.exceptions.RayActorError as err:
+                self.reissue(batch, err)
+                continue
+            batch.failures = 0
             lag = self.learner.version - batch.version
             if lag > self.config.ray.max_policy_lag:
                 # Too old to trust: score the same levels again with the current policy.
@@ -493,6 +610,27 @@ class AsyncRun:
                 self._submit(batch)
                 continue
             self.commit(batch, scores, best, lag)
+
+    def reissue(self, batch: Batch, err: Exception) -> None:
+        """The Explorer of `batch` died with it: submit the batch again, with the current
+        parameters (Ray's own retry would reuse the old ones), to the Explorer's restart."""
+        if self.names[batch.explorer] == "learner":
+            raise err  # the learner is not restarted: the run stops
+        i = batch.explorer
+        if batch.incarnation == self.incarnation[i]:  # a new death, not its echo
+            self.incarnation[i] += 1
+            self.deaths.saw(self.names[i], err, "its batches are re-issued with the current "
+                                                "policy on its restart")
+            t0 = time.perf_counter()
+            wait_restarted(self.ray, self.scorers[i], self.names[i])
+            self.stats.wait_for_levels_s += time.perf_counter() - t0
+        batch.failures += 1
+        if batch.failures >= MAX_CALL_FAILURES:
+            raise RunStopped(f"batch of step {batch.step} lost its Explorer "
+                             f"{MAX_CALL_FAILURES} times in a row ({death_cause(err)})")
+        self.stats.reissued += 1
+        batch.version = self.learner.version
+        self._submit(batch)
 
     def commit(self, batch: Batch, scores: np.ndarray, best: np.ndarray, lag: int) -> None:
         service = self.workers.service
@@ -543,6 +681,20 @@ class AsyncRun:
         return branch, metrics, levels
 
 
+class RunRecord:
+    """`RUN_DIR/ray.json`: written when the actors are up (`status: running`, the cluster's
+    address and the actors' names, so that `tabx runs status` and `tabx runs buffer` can find
+    the run), refreshed at every logged step, and final when the run ends or stops."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.data: dict[str, Any] = {}
+
+    def update(self, **fields: Any) -> None:
+        self.data.update(fields, updated=time.strftime("%Y-%m-%dT%H:%M:%S%z"))
+        atomic_write_json(self.path, self.data)
+
+
 class RayDriver(Driver):
     """Runs a UED run's workers as Ray actors (see the module doc)."""
 
@@ -565,17 +717,34 @@ class RayDriver(Driver):
         stream = sys.stderr if stream is None else stream
         ray, started = connect(config.ray)
         workers = None
+        record = RunRecord(run_dir / RAY_RECORD)
+        run_name = f"{run_dir.name}-{uuid.uuid4().hex[:8]}"
         try:
-            workers = start_workers(ray, config, stream)
-            return self._train(ray, workers, config, run_dir, resume=resume,
-                               max_updates=max_updates, progress=progress, stream=stream,
-                               callback=callback)
+            workers = start_workers(ray, config, stream, run_name)
+            record.update(status="running", driver_pid=os.getpid(),
+                          address=ray.get_runtime_context().gcs_address,
+                          namespace=RAY_NAMESPACE,
+                          actors={name: f"{run_name}/{name}" for name in workers.names()})
+            run_dir = self._train(ray, workers, config, run_dir, record, resume=resume,
+                                  max_updates=max_updates, progress=progress, stream=stream,
+                                  callback=callback)
+            record.update(status="finished")
+            return run_dir
         except ray.exceptions.RayActorError as err:
-            cause = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            cause = death_cause(err)
             stream.write(f"ray: an actor died: {cause}\n")
             stream.flush()
+            record.update(status="stopped", error=f"an actor died: {cause}")
             raise RunStopped(f"{run_dir}: an actor of the run died ({cause}); continue from the "
                              f"last checkpoint with: tabx train --resume {run_dir}") from err
+        except RunStopped as err:
+            record.update(status="stopped", error=str(err))
+            raise RunStopped(f"{run_dir}: {err}; continue from the last checkpoint with: "
+                             f"tabx train --resume {run_dir}") from err
+        except BaseException as err:  # an error or Ctrl-C: the record says the run is over
+            if record.data:
+                record.update(status="stopped", error=f"{type(err).__name__}: {err}")
+            raise
         finally:
             if workers is not None:
                 for actor in workers.all():
@@ -583,12 +752,14 @@ class RayDriver(Driver):
             if started:
                 ray.shutdown()
 
-    def _train(self, ray: Any, workers: Workers, config: TrainConfig, run_dir: Path, *,
+    def _train(self, ray: Any, workers: Workers, config: TrainConfig, run_dir: Path,
+               record: RunRecord, *,
                resume: bool, max_updates: int | None, progress: bool, stream: TextIO,
                callback: Callback | None) -> Path:
         service = Blocking(ray, workers.service)
-        explorers = ExplorerPool(ray, workers.scorers())
-        evaluators = [RemoteEvaluator(ray, workers.evaluator, i, name)
+        deaths = ActorDeaths(stream)  # logged even when quiet: a death is news
+        explorers = workers.explorer_pool(ray, deaths)
+        evaluators = [RemoteEvaluator(ray, workers.evaluator, i, name, deaths)
                       for i, name in enumerate(config.ued.eval_suites)]
         run = UEDRun(config, service, explorers, evaluators)
         ppo = config.learner
@@ -610,7 +781,13 @@ class RayDriver(Driver):
         learner = RemoteLearner(ray, workers.learner, version)
         placement = workers.placement(ray)
         deterministic = config.ray.deterministic
-        asynchronous = None if deterministic else AsyncRun(ray, config, run, learner, workers)
+        record.update(mode="deterministic" if deterministic else "asynchronous",
+                      learner_gpus=workers.gpus, placement=placement, steps=[start, start],
+                      total_steps=total)
+        asynchronous = None if deterministic else AsyncRun(ray, config, run, learner, workers,
+                                                           deaths)
+        chaos_every = config.ray.chaos_kill_explorer_every if workers.explorers else 0
+        chaos_kills = 0
         stop = total if max_updates is None else min(total, start + max_updates)
         bar = Progress(total, stream) if progress else None
         if progress:
@@ -636,6 +813,13 @@ class RayDriver(Driver):
                 counts[branch] += 1
                 done = step + 1
                 last = done == stop
+                if chaos_every and done % chaos_every == 0 and not last:
+                    i = (done // chaos_every - 1) % len(workers.explorers)
+                    ray.kill(workers.explorers[i], no_restart=False)
+                    chaos_kills += 1
+                    stream.write(f"ray: chaos: killed explorer-{i} after step {done} "
+                                 f"(ray.chaos_kill_explorer_every={chaos_every})\n")
+                    stream.flush()
                 if metrics is not None:
                     logged_metrics = metrics
                 checkpoint_due = done % config.run.checkpoint_every == 0 or last
@@ -658,6 +842,11 @@ class RayDriver(Driver):
                                                         service.buffer_size())
                     log_update(writer, bar, None, done, None, values, ppo.steps_per_update,
                                rate, total, last, extra=extra)
+                    record.update(**{"steps": [start, done], "env_steps_per_s": rate,
+                                     "branches": {b.name.lower(): n for b, n in counts.items()},
+                                     "buffer_size": service.buffer_size(),
+                                     "restarts": dict(sorted(deaths.count.items())),
+                                     **(asynchronous.record() if asynchronous else {})})
                     if callback is not None:
                         callback(done, learner.train_state, {k: float(v)
                                                              for k, v in values.items()})
@@ -675,17 +864,14 @@ class RayDriver(Driver):
             if asynchronous is not None:
                 asynchronous.drain()
                 asynchronous.log_evaluations(writer, stream if progress else None, block=True)
-            record = {"mode": "deterministic" if deterministic else "asynchronous",
-                      "learner_gpus": workers.gpus, "placement": placement,
-                      "branches": {b.name.lower(): n for b, n in counts.items()},
-                      "steps": [start, stop]}
-            if asynchronous is not None:
-                record.update(asynchronous.record())
-            atomic_write_json(run_dir / RAY_RECORD, record)
+            record.update(**{"branches": {b.name.lower(): n for b, n in counts.items()},
+                             "steps": [start, stop], "chaos_kills": chaos_kills,
+                             "restarts": dict(sorted(deaths.count.items())),
+                             **(asynchronous.record() if asynchronous else {})})
         finally:
             writer.close()
             checkpoints.close()
         return run_dir
 
 
-__all__ = ["RAY_RECORD", "RayDriver", "connect", "import_ray"]
+__all__ = ["RAY_NAMESPACE", "RAY_RECORD", "RayDriver", "RunRecord", "connect", "import_ray"]
