@@ -2,13 +2,17 @@
 
     tabx runs status RUN_DIR     a Ray run's state: actors and nodes, deaths, rate, staleness
     tabx runs buffer RUN_DIR     the live level buffer of a running Ray run (its LevelService)
+    tabx runs check RUN_DIR      every checkpoint and level snapshot: intact or damaged
 
-Both read `RUN_DIR/ray.json` (`workers.ray_live`); `buffer` joins the run's cluster.
+`status` and `buffer` read `RUN_DIR/ray.json` (`workers.ray_live`); `buffer` joins the run's
+cluster. `check` reads any run folder (`workers.resume`) and changes nothing.
 """
 
 from __future__ import annotations
 
 import argparse
+
+from tabx.errors import UserError
 
 
 def cmd_status(args: argparse.Namespace) -> int:
@@ -27,6 +31,18 @@ def cmd_buffer(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_check(args: argparse.Namespace) -> int:
+    from ued.config import ConfigError
+    from workers.resume import check_run_folder, format_checks
+
+    try:
+        checks = check_run_folder(args.run_dir)
+    except ConfigError as err:
+        raise UserError(str(err)) from None
+    print(format_checks(args.run_dir, checks))
+    return 0 if all(check.intact for check in checks) else 1
+
+
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     runs = subparsers.add_parser("runs", help="look at a Ray run while it runs",
                                  description="Look at a run trained with --ray: its record, "
@@ -39,6 +55,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                                              "(the summary of tabx buffer inspect)")
     buffer.add_argument("run_dir", help="the run folder")
     buffer.set_defaults(func=cmd_buffer)
+    check = which.add_parser("check", help="every checkpoint and level snapshot of a run "
+                                           "folder: intact or damaged (exit 1 if any is)")
+    check.add_argument("run_dir", help="the run folder")
+    check.set_defaults(func=cmd_check)
 
 
-__all__ = ["add_parser", "cmd_buffer", "cmd_status"]
+__all__ = ["add_parser", "cmd_buffer", "cmd_check", "cmd_status"]

@@ -56,6 +56,10 @@ class Checkpoints:
         state = jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), item["train_state"])
         return state, key, int(update)
 
+    def reload(self) -> None:
+        """Read the step folders again (after some were moved away)."""
+        self._manager.reload()
+
     def close(self) -> None:
         self._manager.close()
 

@@ -53,6 +53,7 @@ from workers.evaluator import Evaluator
 from workers.explorer import Explorer
 from workers.learner import Learner
 from workers.level_service import LevelService, to_device, to_host
+from workers.resume import restore_intact
 
 
 def level_service_for(config: TrainConfig, learner: PPOLearner) -> LevelService:
@@ -294,8 +295,11 @@ def train_marl(config: TrainConfig, run_dir: Path, *, resume: bool = False,
     train_state = learner.init(k_init)
     start = 0
     checkpoints = open_checkpoints(run_dir, config)
-    if resume and checkpoints.latest() is not None:
-        train_state, key, start = checkpoints.restore(train_state)
+    restored = (restore_intact(run_dir, checkpoints, train_state, snapshots=False,
+                               needs_buffer=False, stream=stream) if resume else None)
+    if restored is not None:
+        checkpoints.reload()
+        train_state, key, start = restored
     stop = num_updates if max_updates is None else min(num_updates, start + max_updates)
     bar = Progress(num_updates, stream) if progress else None
     if progress:
@@ -344,8 +348,12 @@ def train_ued(config: TrainConfig, run_dir: Path, *, resume: bool = False,
     start, version = 0, 0
     levels_dir = run_dir / LEVELS_DIR
     checkpoints = open_checkpoints(run_dir, config)
-    if resume and checkpoints.latest() is not None:
-        train_state, key, start = checkpoints.restore(train_state)
+    restored = (restore_intact(run_dir, checkpoints, train_state, snapshots=True,
+                               needs_buffer=run.service.buffer is not None, stream=stream)
+                if resume else None)
+    if restored is not None:
+        checkpoints.reload()
+        train_state, key, start = restored
         try:
             version = run.load_state(run.service.load(levels_dir, start))
         except FileNotFoundError as err:

@@ -64,6 +64,7 @@ from workers.actors import (
 )
 from workers.driver import Callback, Driver, RunStopped
 from workers.local import UEDRun, branch_text, level_summary
+from workers.resume import restore_intact
 
 RAY_ENV = {"RAY_USAGE_STATS_ENABLED": "0"}
 RAY_RECORD = "ray.json"  # in the run folder: where the actors run, what was committed
@@ -770,9 +771,15 @@ class RayDriver(Driver):
         start, version = 0, 0
         levels_dir = run_dir / LEVELS_DIR
         checkpoints = open_checkpoints(run_dir, config)
-        if resume and checkpoints.latest() is not None:
+        restored = None
+        if resume:
             template = ray.get(workers.learner.train_state.remote())
-            train_state, key, start = checkpoints.restore(template)
+            restored = restore_intact(run_dir, checkpoints, template, snapshots=True,
+                                      needs_buffer=service.buffer_size() is not None,
+                                      stream=stream)
+        if restored is not None:
+            checkpoints.reload()
+            train_state, key, start = restored
             try:
                 version = run.load_state(service.load(str(levels_dir), start))
             except FileNotFoundError as err:

@@ -1,0 +1,185 @@
+"""Resume from the newest intact step of a run folder, and report the integrity of all of them.
+
+A step can be resumed when its orbax checkpoint restores and, for a UED run, its level snapshot
+reads back: `state-<step>.json` parses, and `buffer-<step>.msgpack` / `learnable-<step>.msgpack`
+pass the level-buffer format's checks (magic, version, SHA-256, every length, dtype and shape).
+`restore_intact` tries the steps newest first, says in one line what is wrong with each step it
+passes over, and moves the files of every step newer than the one it resumes from to
+`RUN_DIR/set-aside/<time>/` (never deletes them), so that the continued run does not mix with
+them. `check_run` reports every step without changing anything (`tabx runs check`).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TextIO
+
+import jax
+
+from level_buffer import LevelBuffer
+from level_buffer.fileformat import BufferFileError
+from ued.checkpoint import Checkpoints
+from ued.config import ConfigError
+from ued.run_folder import CHECKPOINT_DIR, LEVELS_DIR
+from workers.level_service import SNAPSHOT_FILES
+
+SET_ASIDE_DIR = "set-aside"
+
+
+@dataclass(frozen=True)
+class StepCheck:
+    """What is wrong with one step of a run folder (None: intact)."""
+
+    step: int
+    checkpoint: str | None  # None: restores
+    snapshot: str | None  # None: reads back (or the run keeps none)
+
+    @property
+    def intact(self) -> bool:
+        return self.checkpoint is None and self.snapshot is None
+
+
+def first_line(err: BaseException) -> str:
+    """The gist of an error: its first line, without TensorStore's object dump."""
+    text = str(err).strip().split(" See full TensorStore details")[0]
+    return f"{type(err).__name__}: {text.splitlines()[0][:300]}" if text else type(err).__name__
+
+
+def snapshot_problem(levels_dir: Path, step: int, needs_buffer: bool) -> str | None:
+    """What keeps the level snapshot of `step` from reading back, or None."""
+    state = levels_dir / f"state-{step}.json"
+    if not state.is_file():
+        return f"{state}: missing (the snapshot of step {step} is incomplete)"
+    try:
+        json.loads(state.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as err:
+        return f"{state}: unreadable ({first_line(err)})"
+    for name, required in (("buffer", needs_buffer), ("learnable", False)):
+        path = levels_dir / f"{name}-{step}.msgpack"
+        if not path.is_file():
+            if required:
+                return f"{path}: missing"
+            continue
+        try:
+            LevelBuffer.load(path)
+        except (BufferFileError, OSError) as err:
+            return str(err).splitlines()[0]
+    return None
+
+
+def checkpoint_problem(checkpoints: Checkpoints, template: Any, step: int
+                       ) -> tuple[str | None, Any]:
+    """(what keeps checkpoint `step` from restoring or None, the restored (state, key, step))."""
+    try:
+        return None, checkpoints.restore(template, step)
+    except Exception as err:  # noqa: BLE001 (orbax and tensorstore raise many kinds)
+        return f"{checkpoints.directory / str(step)}: cannot be restored ({first_line(err)})", None
+
+
+def restore_intact(run_dir: Path, checkpoints: Checkpoints, template: Any, *,
+                   snapshots: bool, needs_buffer: bool, stream: TextIO | None
+                   ) -> tuple[Any, jax.Array, int] | None:
+    """The newest step whose checkpoint (and, with `snapshots`, level snapshot) is intact:
+    (train state, key, step); None when the run has no checkpoint yet. ConfigError when none
+    is intact. Newer steps' files are set aside."""
+    steps = checkpoints.all()
+    if not steps:
+        return None
+    levels_dir = run_dir / LEVELS_DIR
+    problems = []
+    for step in reversed(steps):
+        problem = snapshot_problem(levels_dir, step, needs_buffer) if snapshots else None
+        restored = None
+        if problem is None:
+            problem, restored = checkpoint_problem(checkpoints, template, step)
+        if problem is not None:
+            problems.append(problem)
+            if stream is not None:
+                stream.write(f"resume: step {step} is damaged: {problem}; trying the one "
+                             f"before\n")
+                stream.flush()
+            continue
+        set_aside(run_dir, step, stream)
+        return restored
+    raise ConfigError(f"{run_dir}: no intact checkpoint to resume from (steps "
+                      f"{', '.join(map(str, steps))}): {problems[0]}")
+
+
+def set_aside(run_dir: Path, step: int, stream: TextIO | None) -> Path | None:
+    """Move the checkpoints and snapshots of steps after `step` to `RUN_DIR/set-aside/<time>/`
+    (kept for inspection: a resumed run writes those steps again)."""
+    newer = [p for p in sorted((run_dir / CHECKPOINT_DIR).glob("*"))
+             if p.is_dir() and p.name.isdigit() and int(p.name) > step]
+    levels_dir = run_dir / LEVELS_DIR
+    if levels_dir.is_dir():
+        for path in sorted(levels_dir.iterdir()):
+            for pattern in SNAPSHOT_FILES:
+                prefix, suffix = pattern.split("{}")
+                middle = path.name[len(prefix):len(path.name) - len(suffix)]
+                if (path.name.startswith(prefix) and path.name.endswith(suffix)
+                        and middle.isdigit() and int(middle) > step):
+                    newer.append(path)
+    if not newer:
+        return None
+    target = run_dir / SET_ASIDE_DIR / time.strftime("%Y%m%d-%H%M%S")
+    for path in newer:
+        destination = target / path.relative_to(run_dir)
+        destination.parent.mkdir(parents=True, exist_ok=True)
+        shutil.move(str(path), str(destination))
+    if stream is not None:
+        stream.write(f"resume: from step {step}; {len(newer)} newer files moved to {target}\n")
+        stream.flush()
+    return target
+
+
+def check_run(run_dir: Path, checkpoints: Checkpoints, template: Any, *, snapshots: bool,
+              needs_buffer: bool) -> list[StepCheck]:
+    """Every checkpointed step of a run folder, oldest first, checked as resume would."""
+    levels_dir = run_dir / LEVELS_DIR
+    return [StepCheck(step, checkpoint_problem(checkpoints, template, step)[0],
+                      snapshot_problem(levels_dir, step, needs_buffer) if snapshots else None)
+            for step in checkpoints.all()]
+
+
+def check_run_folder(run_dir: str | Path) -> list[StepCheck]:
+    """`check_run` for a run folder as it is on disk (its own config says what it keeps)."""
+    from ued.curricula import make_curriculum
+    from ued.experiment import learner_for
+    from ued.run_folder import open_checkpoints, read_run_config
+
+    run_dir = Path(run_dir)
+    config = read_run_config(run_dir)
+    ued = config.ued
+    uses_buffer = ued.enabled and make_curriculum(ued.method, ued.exploratory_grad_updates,
+                                                  ued.sfl_update_freq).uses_buffer
+    template = learner_for(config).init(jax.random.key(0))
+    with open_checkpoints(run_dir, config) as checkpoints:
+        return check_run(run_dir, checkpoints, template, snapshots=ued.enabled,
+                         needs_buffer=uses_buffer)
+
+
+def format_checks(run_dir: str | Path, checks: list[StepCheck]) -> str:
+    """`tabx runs check`: a line per step, then the step `--resume` would continue from."""
+    if not checks:
+        return f"{run_dir}: no checkpoint yet"
+    lines = [f"{run_dir}: {len(checks)} checkpointed steps"]
+    for check in checks:
+        if check.intact:
+            lines.append(f"  step {check.step}: intact")
+            continue
+        parts = [f"{what}: {problem}" for what, problem in (("checkpoint", check.checkpoint),
+                                                            ("snapshot", check.snapshot))
+                 if problem]
+        lines.append(f"  step {check.step}: damaged: {'; '.join(parts)}")
+    intact = [c.step for c in checks if c.intact]
+    lines.append(f"newest intact step: {intact[-1]} (tabx train --resume continues from it)"
+                 if intact else "no intact step: the run cannot be resumed")
+    return "\n".join(lines)
+
+
+__all__ = ["SET_ASIDE_DIR", "StepCheck", "check_run", "check_run_folder", "format_checks",
+           "restore_intact", "set_aside"]
