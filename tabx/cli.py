@@ -13,6 +13,7 @@ the simulator alone (`python -m tabx.cli scenarios list`), usable without the le
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Callable, Iterable, Mapping
 
@@ -43,6 +44,8 @@ def add_simulator_commands(subparsers: argparse._SubParsersAction,
 def build_parser(registrars: Iterable[Registrar]) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="tabx", description="TABX battle simulator, MARL learners and UED tools.")
+    parser.add_argument("--debug", action="store_true",
+                        help="show the Python traceback of an error (or set TABX_DEBUG=1)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for add in registrars:
@@ -60,8 +63,15 @@ def build_route_parser(command: str, word: str, routes: Routes) -> argparse.Argu
 
 def run(argv: list[str] | None, registrars: Iterable[Registrar], routes: Routes = ROUTES
         ) -> int:
-    """Parse `argv` (default: sys.argv[1:]) against the registrars' commands and run one."""
+    """Parse `argv` (default: sys.argv[1:]) against the registrars' commands and run one.
+
+    Errors end in one line on stderr, never a traceback: a `UserError` (bad input, a damaged
+    file) as `tabx COMMAND: error: ...` with exit code 2, anything else with its type and exit
+    code 1. `tabx --debug COMMAND ...` (or TABX_DEBUG=1) lets the traceback through."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    debug = os.environ.get("TABX_DEBUG", "") not in ("", "0")
+    if argv[:1] == ["--debug"]:
+        debug, argv = True, argv[1:]
     if tuple(argv[:2]) in routes:
         args = build_route_parser(argv[0], argv[1], routes).parse_args(argv[1:])
         args.command = argv[0]
@@ -70,6 +80,8 @@ def run(argv: list[str] | None, registrars: Iterable[Registrar], routes: Routes 
     try:
         return int(args.func(args) or 0)
     except UserError as err:
+        if debug:
+            raise
         print(f"tabx {args.command}: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
@@ -78,6 +90,14 @@ def run(argv: list[str] | None, registrars: Iterable[Registrar], routes: Routes 
     except BrokenPipeError:  # output piped into `head` and the like: not an error
         sys.stderr.close()
         return 0
+    except Exception as err:  # noqa: BLE001 (the one place that turns any error into a line)
+        if debug:
+            raise
+        text = str(err).strip().splitlines()[0] if str(err).strip() else ""
+        print(f"tabx {args.command}: error: {type(err).__name__}{': ' if text else ''}{text} "
+              f"(unexpected: run `tabx --debug {args.command} ...` or set TABX_DEBUG=1 for "
+              f"the traceback)", file=sys.stderr)
+        return 1
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -19,6 +19,7 @@ Training goes through `workers.train.train`, which picks the driver.
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from tabx.errors import UserError
 
@@ -49,6 +50,9 @@ def cmd_train(args: argparse.Namespace) -> int:
         ray_overrides.append(f"ray.address={args.address}")
     try:
         if args.resume:
+            if config_path and Path(config_path).is_dir():
+                raise UserError(f"--resume takes one run folder; {config_path} is another "
+                                f"(did a pattern match several runs?)")
             if config_path or any(not o.startswith("ray.") for o in overrides):
                 raise UserError("--resume continues a run with its own config.yaml: give no "
                                 "config file, and overrides of the ray: section only "

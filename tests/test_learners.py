@@ -485,7 +485,9 @@ def test_config_file_overrides_and_yaml_numbers(tmp_path):
     assert load_config(path).to_dict()["env"]["scenario"] == ["crossfire", "vsrangers"]
     with pytest.raises(ConfigError, match="unknown key 'lrate'"):
         apply_overrides({}, ["lrate=1"])
-    with pytest.raises(ConfigError, match="learner.lrr.*did you mean 'lr'"):
+    # A mistyped override is the override's mistake, and the hint is the whole key.
+    with pytest.raises(ConfigError, match="override 'learner.lrr=1': unknown key 'learner.lrr'; "
+                                          "did you mean 'learner.lr'"):
         load_config(path, ["learner.lrr=1"])
     with pytest.raises(ConfigError, match="KEY=VALUE"):
         apply_overrides({}, ["=3"])

@@ -32,7 +32,7 @@ def test_train_reports_config_errors_naming_the_key(capsys, tmp_path, tiny_yaml)
     bad = tmp_path / "bad.yaml"
     bad.write_text("algorithm: mappo\nlearner:\n  clip_epsilon: 0.2\n")
     code, _, err = run_cli(capsys, "train", str(bad))
-    assert code == 2 and "learner.clip_epsilon" in err and "did you mean 'clip_eps'" in err
+    assert code == 2 and "learner.clip_epsilon" in err and "did you mean 'learner.clip_eps'" in err
     code, _, err = run_cli(capsys, "train", str(tiny_yaml), "learner.gamma=2")
     assert code == 2 and "learner.gamma: must be in [0, 1], got 2.0" in err
     code, _, err = run_cli(capsys, "train", str(tiny_yaml), "nonsense")
@@ -82,6 +82,12 @@ def test_train_resume_and_eval(capsys, tmp_path, tiny_yaml):
     assert code == 0, err
     with Checkpoints(run / CHECKPOINT_DIR) as ck:
         assert ck.latest() == 4 and ck.all() == [3, 4]  # keep_checkpoints: 2
+    # Once more: nothing left to do, and it says so.
+    code, out, err = run_cli(capsys, "train", "--resume", str(run), "--quiet")
+    assert code == 0 and f"{run}: already complete (4 of 4 updates); nothing to resume" in err
+    # A pattern that matched two runs: say that, not something about overrides.
+    code, _, err = run_cli(capsys, "train", "--resume", str(run), str(tmp_path))
+    assert code == 2 and f"--resume takes one run folder; {tmp_path} is another" in err
 
     # Against the medium heuristic, with a GIF of episode 0.
     gif = tmp_path / "episode.gif"
@@ -178,3 +184,21 @@ def test_bench_train_refuses_a_first_update_loaded_from_a_cache(tmp_path):
         outputs.append(out.stdout)
     assert "measured True" in outputs[0]
     assert "refused: the first update was not compiled" in outputs[1]
+
+
+def test_an_unexpected_error_is_one_line_and_debug_shows_the_traceback(capsys, monkeypatch):
+    from tabx.cli import run
+
+    def add_boom(subparsers):
+        boom = subparsers.add_parser("boom")
+        boom.set_defaults(func=lambda args: {}["missing key"])
+
+    assert run(["boom"], [add_boom]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("tabx boom: error: KeyError: 'missing key' (unexpected: run `tabx "
+                          "--debug boom ...`") and "Traceback" not in err
+    with pytest.raises(KeyError):
+        run(["--debug", "boom"], [add_boom])
+    monkeypatch.setenv("TABX_DEBUG", "1")
+    with pytest.raises(KeyError):
+        run(["boom"], [add_boom])

@@ -358,8 +358,8 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
 
 def _unknown(key: str, allowed: Sequence[str]) -> ConfigError:
     close = difflib.get_close_matches(key.rsplit(".", 1)[-1], allowed, n=1)
-    hint = f"; did you mean {close[0]!r}?" if close else ""
     section = key.rsplit(".", 1)[0] + "." if "." in key else ""
+    hint = f"; did you mean {section + close[0]!r}?" if close else ""
     return ConfigError(f"unknown key {key!r}{hint} (allowed in this section: "
                        f"{', '.join(section + a for a in allowed)})")
 
@@ -447,11 +447,13 @@ def apply_overrides(data: Any, overrides: Sequence[str], source: str = "config")
                                   f"{', '.join(paths[key])}")
             key = paths[key][0]
         parts = key.split(".")
-        if len(parts) > 2 or (len(parts) == 2 and parts[0] not in sections):
-            valid = sorted(p for ps in paths.values() for p in ps)
+        valid = sorted(p for ps in paths.values() for p in ps)
+        if len(parts) > 2 or (len(parts) == 2 and (parts[0] not in sections
+                                                   or key not in valid)):
+            # Named here, as the override's mistake, not the config file's.
             close = difflib.get_close_matches(key, valid, n=1)
             hint = f"; did you mean {close[0]!r}?" if close else ""
-            raise ConfigError(f"override: unknown key {key!r}{hint}")
+            raise ConfigError(f"override {item!r}: unknown key {key!r}{hint}")
         if len(parts) == 2:
             section = out.setdefault(parts[0], {})
             if not isinstance(section, dict):

@@ -16,16 +16,24 @@ anything compiles.
 from __future__ import annotations
 
 import dataclasses
+import sys
 from pathlib import Path
 from typing import TextIO
 
 from ued import compile_cache
 from ued.config import ConfigError, RaySection, TrainConfig
 from ued.experiment import check_devices
-from ued.run_folder import create_run_dir, read_run_config
+from ued.run_folder import create_run_dir, open_checkpoints, read_run_config
 from workers.driver import Callback, Driver
 from workers.local import LocalDriver
 from workers.ray_driver import RayDriver
+
+
+def finished_at(run_dir: Path, config: TrainConfig) -> int | None:
+    """The last update of a run whose newest checkpoint is its last, else None."""
+    with open_checkpoints(run_dir, config) as checkpoints:
+        latest = checkpoints.latest()
+    return latest if latest is not None and latest >= config.learner.num_updates else None
 
 
 def driver_for(config: TrainConfig) -> Driver:
@@ -48,6 +56,12 @@ def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = Non
             config = dataclasses.replace(config, ray=ray).validate()
     elif config is None:
         raise ConfigError("a new run needs a config")
+    if resume and finished_at(Path(run_dir), config) is not None:
+        done = finished_at(Path(run_dir), config)
+        out = sys.stderr if stream is None else stream
+        out.write(f"{run_dir}: already complete ({done} of {config.learner.num_updates} "
+                  f"updates); nothing to resume\n")
+        return Path(run_dir)
     driver = driver if driver is not None else driver_for(config)
     check_devices(config)  # before a new run's folder exists
     driver.check(config)
