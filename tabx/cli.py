@@ -61,6 +61,10 @@ def build_route_parser(command: str, word: str, routes: Routes) -> argparse.Argu
     return parser
 
 
+# Names of a command's positional KEY=VALUE lists, which may also follow its options.
+OVERRIDE_LISTS = ("items", "overrides")
+
+
 def run(argv: list[str] | None, registrars: Iterable[Registrar], routes: Routes = ROUTES
         ) -> int:
     """Parse `argv` (default: sys.argv[1:]) against the registrars' commands and run one.
@@ -76,7 +80,16 @@ def run(argv: list[str] | None, registrars: Iterable[Registrar], routes: Routes 
         args = build_route_parser(argv[0], argv[1], routes).parse_args(argv[1:])
         args.command = argv[0]
     else:
-        args = build_parser(registrars).parse_args(argv)
+        parser = build_parser(registrars)
+        args, extra = parser.parse_known_args(argv)
+        if extra:
+            # KEY=VALUE overrides after options (`tabx train CONFIG --ray ray.explorers=2`):
+            # argparse stops collecting positionals at the first option; gather them here.
+            overrides = next((getattr(args, name) for name in OVERRIDE_LISTS
+                              if isinstance(getattr(args, name, None), list)), None)
+            if overrides is None or not all("=" in e and not e.startswith("-") for e in extra):
+                parser.error(f"unrecognized arguments: {' '.join(extra)}")
+            overrides.extend(extra)
     try:
         return int(args.func(args) or 0)
     except UserError as err:

@@ -202,3 +202,15 @@ def test_an_unexpected_error_is_one_line_and_debug_shows_the_traceback(capsys, m
     monkeypatch.setenv("TABX_DEBUG", "1")
     with pytest.raises(KeyError):
         run(["boom"], [add_boom])
+
+
+def test_overrides_may_follow_options(capsys, tmp_path, tiny_yaml):
+    # `tabx train CONFIG --max-updates 1 seed=7`: argparse alone would refuse the override.
+    run = tmp_path / "run"
+    code, _, err = run_cli(capsys, "train", str(tiny_yaml), "--max-updates", "1", "seed=7",
+                           "--run-dir", str(run), "--quiet")
+    assert code == 0, err
+    assert "seed: 7" in (run / CONFIG_FILE).read_text()
+    with pytest.raises(SystemExit):  # anything else after the options is still refused
+        run_cli(capsys, "train", str(tiny_yaml), "--quiet", "--bogus")
+    assert "unrecognized arguments: --bogus" in capsys.readouterr().err
