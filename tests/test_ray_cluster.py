@@ -73,6 +73,45 @@ def test_two_node_cluster_places_an_explorer_on_each_node(tmp_path):
         cluster.shutdown()
 
 
+def test_a_lost_node_moves_its_explorer_and_the_run_finishes(tmp_path):
+    # The learner and the service sit on the head (Ray keeps early actors on the driver's
+    # node); an Explorer on the worker node. Removing that node mid-run must restart its
+    # Explorer on the head (which has a CPU to spare), re-issue what it held, and finish with
+    # every batch committed once.
+    cluster = Cluster(initialize_head=True, head_node_args={
+        "num_cpus": 3, "include_dashboard": False, "object_store_memory": 96 * 2**20})
+    try:
+        worker = cluster.add_node(num_cpus=2, object_store_memory=96 * 2**20)
+        cluster.wait_for_nodes(timeout=60)
+        ray.init(address=cluster.address, logging_level="ERROR")
+        run_dir = tmp_path / "lost-node"
+        removed = {}
+
+        def remove_worker(done, train_state, values):
+            if done == 2:
+                placement = json.loads((run_dir / RAY_RECORD).read_text())["placement"]
+                removed["placement"] = placement
+                assert placement["learner"] != worker.node_id, placement  # precondition
+                assert placement["service"] != worker.node_id, placement
+                cluster.remove_node(worker)
+                removed["at"] = done
+
+        config = ued_config("accel", **{"ray.enabled": "true", "ray.explorers": 2,
+                                        "run.log_every": 1})
+        out = io.StringIO()
+        train(config, run_dir=run_dir, stream=out, max_updates=8, callback=remove_worker)
+        assert removed["at"] == 2
+        assert worker.node_id in removed["placement"].values()  # an Explorer was there
+        record = check_run(run_dir, 8)
+        assert record["status"] == "finished"
+        moved = [name for name, node in removed["placement"].items() if node == worker.node_id]
+        head = removed["placement"]["learner"]
+        assert moved and all(record["placement_end"][name] == head for name in moved), record
+    finally:
+        ray.shutdown()
+        cluster.shutdown()
+
+
 def free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))

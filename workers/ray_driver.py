@@ -216,9 +216,19 @@ def start_workers(ray: Any, config: TrainConfig, stream: TextIO,
     # with each call); the service and the learner hold the run's state: they are not
     # restarted, their death stops the run (resume from the last checkpoint).
     restarts = section.actor_restarts
+    # The service sits on the driver's node, which calls it every step and whose loss ends
+    # the run anyway (it reserves no CPU, so it always fits there; a soft affinity was not
+    # honoured for actors with a runtime_env in Ray 2.60). A CPU learner prefers that node
+    # too (the launcher files make the head the learner's node); a GPU one goes to a GPU.
+    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+    driver_node = ray.get_runtime_context().get_node_id()
     # The service and evaluator are light: they share CPUs with the others.
-    service = spawn(LevelServiceActor, "service", config, num_cpus=0)
-    learner = spawn(LearnerActor, "learner", config, num_gpus=gpus, num_cpus=1 if not gpus else 0)
+    service = spawn(LevelServiceActor, "service", config, num_cpus=0,
+                    scheduling_strategy=NodeAffinitySchedulingStrategy(driver_node, soft=False))
+    learner = spawn(LearnerActor, "learner", config, num_gpus=gpus, num_cpus=1 if not gpus else 0,
+                    **({} if gpus else {"scheduling_strategy": NodeAffinitySchedulingStrategy(
+                        driver_node, soft=True)}))
     explorers = [spawn(ExplorerActor, f"explorer-{i}", config, num_cpus=1,
                        scheduling_strategy="SPREAD", restarts=restarts)
                  for i in range(section.explorers)]
@@ -871,7 +881,15 @@ class RayDriver(Driver):
             if asynchronous is not None:
                 asynchronous.drain()
                 asynchronous.log_evaluations(writer, stream if progress else None, block=True)
+            try:  # where the actors ended (a restarted one may have moved)
+                for name, actor in zip(workers.names(), workers.all(), strict=True):
+                    if name.startswith("explorer") or name == "evaluator":
+                        wait_restarted(ray, actor, name, timeout_s=60)
+                placement_end = workers.placement(ray)
+            except (ray.exceptions.RayActorError, RunStopped):
+                placement_end = None
             record.update(**{"branches": {b.name.lower(): n for b, n in counts.items()},
+                             "placement_end": placement_end,
                              "steps": [start, stop], "chaos_kills": chaos_kills,
                              "restarts": dict(sorted(deaths.count.items())),
                              **(asynchronous.record() if asynchronous else {})})
