@@ -320,3 +320,47 @@ def test_a_ray_run_resumed_with_other_explorers_equals_an_uninterrupted_local_ru
     assert trees_equal(state_a.params, state_b.params) and np.array_equal(key_a, key_b)
     assert (local / LEVELS_DIR / f"buffer-{STEPS}.msgpack").read_bytes() == (
         remote / LEVELS_DIR / f"buffer-{STEPS}.msgpack").read_bytes()
+
+
+def test_an_evaluator_killed_mid_evaluation_runs_it_again_on_its_restart(tmp_path,
+                                                                          monkeypatch):
+    import signal
+
+    from test_eval_suites import weak_level
+
+    from tabx.scenarios import level_to_scenario, save_scenario
+    from ued.tensorboard import read_scalars
+    from workers.ray_driver import AsyncRun
+
+    for weak in ("ally", "enemy"):
+        save_scenario(tmp_path / f"weak_{weak}.json",
+                      level_to_scenario(weak_level(weak), name=f"weak_{weak}"))
+    suite = tmp_path / "duels.yaml"
+    suite.write_text("name: duels\nepisodes: 2\nentries:\n"
+                     f"  - scenario: {tmp_path / 'weak_ally.json'}\n    opponent: random\n"
+                     f"  - scenario: {tmp_path / 'weak_enemy.json'}\n    opponent: idle\n")
+    killed = []
+    original = AsyncRun.submit_evaluation
+
+    def submit_then_kill(self, done):
+        pid = ray.get(self.workers.evaluator.pid.remote()) if not killed else None
+        original(self, done)
+        if pid is not None:  # the first evaluation is in flight (it compiles): kill it
+            os.kill(pid, signal.SIGKILL)
+            killed.append(done)
+
+    monkeypatch.setattr(AsyncRun, "submit_evaluation", submit_then_kill)
+    config = ray_config("robust_plr", **{"ray.explorers": 1, "ued.eval_suites": f"[{suite}]",
+                                         "ued.eval_every": 2})
+    out = io.StringIO()
+    run_dir = train(config, run_dir=tmp_path / "eval-killed", stream=out, max_updates=6)
+    record = json.loads((run_dir / RAY_RECORD).read_text())
+    assert killed == [2] and record["status"] == "finished"
+    assert record["restarts"] == {"evaluator": 1}, out.getvalue()[-2000:]
+    # The killed evaluation, and any sent before the death was seen, ran again; none lost.
+    assert record["evaluations_rerun"] >= 1 and record["evaluations_lost"] == 0
+    assert "ray: evaluator died" in out.getvalue()
+    assert "duels.yaml after step 2 runs again on its restart" in out.getvalue()
+    # Every evaluation was logged, the killed one from the restarted Evaluator.
+    logged = read_scalars(run_dir / "events")["eval/duels/mean_win_rate"]
+    assert sorted(step for step, _ in logged) == [2 * 64, 4 * 64, 6 * 64]

@@ -456,6 +456,20 @@ class Batch:
 
 
 @dataclass
+class Evaluation:
+    """One suite's evaluation at one step, on the Evaluator: what is needed to run it again."""
+
+    step: int
+    suite: str
+    index: int
+    params: ParamsRef
+    key: jax.Array
+    ref: Any = None
+    incarnation: int = 0
+    failures: int = 0
+
+
+@dataclass
 class RayStats:
     """What the progress line and `ray/*` scalars report."""
 
@@ -464,7 +478,8 @@ class RayStats:
     committed: int = 0
     rescored: int = 0
     reissued: int = 0  # batches submitted again after their Explorer died
-    evaluations_lost: int = 0  # evaluations whose Evaluator died
+    evaluations_rerun: int = 0  # evaluations run again after their Evaluator died
+    evaluations_lost: int = 0  # evaluations given up
     staleness: Counter = field(default_factory=Counter)  # version lag at commit -> batches
     learner_busy_s: float = 0.0
     wait_for_levels_s: float = 0.0
@@ -518,42 +533,72 @@ class AsyncRun:
         self.stats = RayStats()
         self.ledger: dict[int, str] = {}  # step -> "issued" | "committed"
         self.recent_lags: deque[int] = deque(maxlen=1000)
-        self.evaluations: list[tuple[int, str, Any]] = []  # (step, suite, ref) running
+        self.evaluations: list[Evaluation] = []  # running
+        self.evaluator_incarnation = 0
 
     # Evaluation runs beside training: submitted at its steps, logged when it is done -------
 
     def submit_evaluation(self, done: int) -> None:
-        evaluator = self.workers.evaluator
-        if evaluator is None:
+        if self.workers.evaluator is None:
             return
         key = jax.random.fold_in(jax.random.key(self.config.seed ^ 0x5EED), done)
         for i, name in enumerate(self.config.ued.eval_suites):
-            ref = evaluator.evaluate.remote(i, self.learner.params, jax.random.fold_in(key, i))
-            self.evaluations.append((done, name, ref))
+            self._evaluate(Evaluation(done, name, i, self.learner.params,
+                                      jax.random.fold_in(key, i)))
+
+    def _evaluate(self, evaluation: Evaluation) -> None:
+        evaluation.incarnation = self.evaluator_incarnation
+        evaluation.ref = self.workers.evaluator.evaluate.remote(
+            evaluation.index, evaluation.params, evaluation.key)
+        self.evaluations.append(evaluation)
 
     def log_evaluations(self, writer: SummaryWriter, stream: TextIO | None,
                         block: bool = False) -> None:
+        """Log the evaluations that are done. One whose Evaluator died runs again, with the
+        same parameters and key, once the Evaluator is back; after `MAX_CALL_FAILURES` in a
+        row it is given up (logged, `evaluations_lost`) and training goes on."""
         from workers.evaluator import log
 
-        keep = []
-        for done, name, ref in self.evaluations:
-            ready, _ = self.ray.wait([ref], timeout=None if block else 0)
+        waiting, self.evaluations = self.evaluations, []
+        for evaluation in waiting:
+            ready, _ = self.ray.wait([evaluation.ref], timeout=None if block else 0)
             if not ready:
-                keep.append((done, name, ref))
+                self.evaluations.append(evaluation)
                 continue
             try:
-                result = self.ray.get(ref)
+                result = self.ray.get(evaluation.ref)
             except self.ray.exceptions.RayActorError as err:
-                self.stats.evaluations_lost += 1
-                self.deaths.saw("evaluator", err, f"its evaluation of {name} after step "
-                                                  f"{done} is lost; the next runs on its restart")
+                self._evaluator_lost(evaluation, err)
                 continue
-            log(writer, done * self.config.learner.steps_per_update, result)
+            log(writer, evaluation.step * self.config.learner.steps_per_update, result)
             if stream is not None:
-                stream.write(f"  eval {name} after step {done}: mean win rate "
-                             f"{result.mean_win_rate:.2f}\n")
+                stream.write(f"  eval {evaluation.suite} after step {evaluation.step}: mean "
+                             f"win rate {result.mean_win_rate:.2f}\n")
                 stream.flush()
-        self.evaluations = keep
+        if block and self.evaluations:  # re-run ones: wait for them too
+            self.log_evaluations(writer, stream, block=True)
+
+    def _evaluator_lost(self, evaluation: Evaluation, err: Exception) -> None:
+        what = f"its evaluation of {evaluation.suite} after step {evaluation.step}"
+        evaluation.failures += 1
+        if evaluation.incarnation == self.evaluator_incarnation:  # a new death, not its echo
+            self.evaluator_incarnation += 1
+            gives_up = evaluation.failures >= MAX_CALL_FAILURES
+            self.deaths.saw("evaluator", err, f"{what} {'is lost' if gives_up else 'runs again'}"
+                                              " on its restart")
+            try:
+                wait_restarted(self.ray, self.workers.evaluator, "evaluator")
+            except RunStopped as stopped:
+                self.deaths.saw("evaluator", stopped, "evaluations stop; training goes on")
+                self.workers.evaluator = None
+                self.stats.evaluations_lost += 1 + len(self.evaluations)
+                self.evaluations = []
+                return
+        if evaluation.failures >= MAX_CALL_FAILURES:
+            self.stats.evaluations_lost += 1
+            return
+        self.stats.evaluations_rerun += 1
+        self._evaluate(evaluation)
 
     def record(self) -> dict[str, Any]:
         """What `ray.json` keeps of the schedule: batches, re-scores, the staleness histogram."""
@@ -562,6 +607,7 @@ class AsyncRun:
                 "staleness": {str(k): v for k, v in sorted(self.stats.staleness.items())},
                 "ledger": dict(states), "trained_steps": self.stats.trained_steps,
                 "reissued": self.stats.reissued,
+                "evaluations_rerun": self.stats.evaluations_rerun,
                 "evaluations_lost": self.stats.evaluations_lost,
                 "restarts": dict(sorted(self.deaths.count.items())),
                 "explored_steps": self.stats.explored_steps,
