@@ -191,7 +191,8 @@ def test_resume_without_level_snapshot_is_a_clear_error(tmp_path):
     run_dir = train(config, run_dir=tmp_path / "run", stream=io.StringIO(), max_updates=2)
     for path in (run_dir / LEVELS_DIR).iterdir():
         path.unlink()
-    with pytest.raises(ConfigError, match="cannot resume: .*state-2.json"):
+    with pytest.raises(ConfigError, match="no intact checkpoint to resume from .*state-2.json: "
+                                          "missing"):
         train(run_dir=run_dir, resume=True, stream=io.StringIO())
 
 
