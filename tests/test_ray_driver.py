@@ -364,3 +364,12 @@ def test_an_evaluator_killed_mid_evaluation_runs_it_again_on_its_restart(tmp_pat
     # Every evaluation was logged, the killed one from the restarted Evaluator.
     logged = read_scalars(run_dir / "events")["eval/duels/mean_win_rate"]
     assert sorted(step for step, _ in logged) == [2 * 64, 4 * 64, 6 * 64]
+
+
+def test_ued_bench_times_an_explorer_restart():
+    from workers.bench import bench_restart
+
+    out = io.StringIO()
+    result = bench_restart(ray, ued_config("robust_plr"), True, out)
+    assert result.first_score_s > 0 and 0 < result.ready_s <= result.restarted_score_s
+    assert "restart, compilation cache on: back in" in out.getvalue()

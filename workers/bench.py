@@ -249,8 +249,11 @@ def bench_async(ray: Any, config: TrainConfig, warmup: int, steps: int,
 
 
 def run_ued_bench(config: TrainConfig, explorers: list[int], warmup: int, steps: int,
-                  local: bool = True, stream: TextIO | None = None) -> list[UEDBenchResult]:
-    """Every setting in turn (see the module doc); a line per setting on `stream`."""
+                  local: bool = True, stream: TextIO | None = None,
+                  restarts: list[RestartResult] | None = None) -> list[UEDBenchResult]:
+    """Every setting in turn (see the module doc); a line per setting on `stream`. With a
+    `restarts` list, an Explorer's restart is timed too (compilation cache off, then on) and
+    appended to it."""
     from workers.ray_driver import connect
 
     stream = sys.stderr if stream is None else stream
@@ -302,10 +305,81 @@ def run_ued_bench(config: TrainConfig, explorers: list[int], warmup: int, steps:
             started = time.perf_counter()
             results.append(bench_async(ray, setting(n, False), warmup, steps, stream))
             report(results[-1], started)
+        if restarts is not None:
+            restarts += [bench_restart(ray, config, cache, stream) for cache in (False, True)]
     finally:
         if connected_here:
             ray.shutdown()
     return results
+
+
+@dataclass
+class RestartResult:
+    """An Explorer killed and restarted: seconds from the kill until it answers again, and
+    until its first scored batch (compiled again, or loaded from the compilation cache)."""
+
+    compile_cache: bool
+    first_score_s: float  # of the fresh actor: start-up and compilation
+    ready_s: float
+    restarted_score_s: float
+
+
+def bench_restart(ray: Any, config: TrainConfig, compile_cache: bool,
+                  stream: TextIO) -> RestartResult:
+    """Start an Explorer, score a batch, kill its process (`ray.kill`, restart allowed), and
+    time its return. With `compile_cache` the actor reads and writes a fresh persistent
+    compilation cache (so the restart finds what the first life compiled), else none."""
+    import tempfile
+
+    from workers.actors import ExplorerActor, LevelServiceActor, ParamsRef
+    from workers.ray_driver import actor_env
+
+    with tempfile.TemporaryDirectory(prefix="tabx-restart-cache-") as cache:
+        env = actor_env(False)
+        env["TABX_COMPILE_CACHE_DIR"] = cache if compile_cache else "off"
+        setting = dataclasses.replace(config, run=dataclasses.replace(
+            config.run, compile_cache=compile_cache))
+
+        def spawn(cls: type, **options: Any) -> Any:
+            return ray.remote(cls).options(runtime_env={"env_vars": env}, **options
+                                           ).remote(setting)
+
+        service = spawn(LevelServiceActor, num_cpus=0)
+        explorer = spawn(ExplorerActor, num_cpus=1, max_restarts=-1, max_task_retries=0)
+        try:
+            ppo = UEDRun.local(setting)[1]
+            params = ParamsRef(0, [ray.put(jax.device_get(ppo.init(jax.random.key(0)).params))])
+            levels = service.fresh.remote(jax.random.key(1), config.learner.num_envs)
+
+            def score() -> float:
+                started = time.perf_counter()
+                ray.get(explorer.score_levels.remote(params, levels, jax.random.key(2),
+                                                     config.ued.score))
+                return time.perf_counter() - started
+
+            ray.get(explorer.ready.remote())
+            first = score()
+            old_pid = ray.get(explorer.pid.remote())
+            killed = time.perf_counter()
+            ray.kill(explorer, no_restart=False)
+            # The kill is asynchronous: the old process may still answer; wait for a new one.
+            while time.perf_counter() - killed < 300:
+                try:
+                    if ray.get(explorer.pid.remote(), timeout=300) != old_pid:
+                        break
+                except ray.exceptions.RayActorError:
+                    time.sleep(0.05)
+            ready = time.perf_counter() - killed
+            score()
+            restarted = time.perf_counter() - killed
+        finally:
+            for actor in (service, explorer):
+                ray.kill(actor)
+    stream.write(f"  restart, compilation cache {'on' if compile_cache else 'off'}: back in "
+                 f"{ready:.1f} s, first batch scored {restarted:.1f} s after the kill (a fresh "
+                 f"actor's first batch: {first:.1f} s)\n")
+    stream.flush()
+    return RestartResult(compile_cache, first, ready, restarted)
 
 
 def ray_overhead(results: list[UEDBenchResult]) -> float | None:
@@ -373,14 +447,22 @@ def bench_ued(args: argparse.Namespace) -> int:
         config = load_config(args.config, overrides)
         if not config.ued.enabled:
             raise ConfigError(f"{args.config}: ued.method: tabx bench ued needs a UED config")
+        restarts: list[RestartResult] | None = [] if args.restart else None
         results = run_ued_bench(config, args.explorers, args.warmup, args.steps,
-                                local=not args.no_local)
+                                local=not args.no_local, restarts=restarts)
     except ConfigError as err:
         raise UserError(str(err)) from None
     print(format_table(results))
+    for r in restarts or []:
+        print(f"Explorer restart, compilation cache {'on ' if r.compile_cache else 'off'}: "
+              f"answers {r.ready_s:.1f} s after the kill, scores again after "
+              f"{r.restarted_score_s:.1f} s (a fresh actor's first batch: "
+              f"{r.first_score_s:.1f} s)")
     if args.json:
-        atomic_write_text(Path(args.json), "".join(json.dumps(r.to_json()) + "\n"
-                                                   for r in results))
+        lines = [json.dumps(r.to_json()) for r in results]
+        lines += [json.dumps({"driver": "restart", **dataclasses.asdict(r)})
+                  for r in restarts or []]
+        atomic_write_text(Path(args.json), "".join(line + "\n" for line in lines))
     if args.plot:
         plot_results(results, args.plot)
         print(f"plot: {args.plot}")
@@ -400,10 +482,14 @@ def add_ued_bench(which: argparse._SubParsersAction) -> None:
     p.add_argument("--steps", type=int_at_least(1), default=16,
                    help="timed curriculum steps per setting (default 16)")
     p.add_argument("--no-local", action="store_true", help="skip the local driver")
+    p.add_argument("--restart", action="store_true",
+                   help="also time an Explorer's restart after a kill, without and with the "
+                        "compilation cache")
     p.add_argument("--address", help="join a running Ray cluster (auto, or HOST:PORT)")
     p.add_argument("--json", help="also write results as JSON lines to this file")
     p.add_argument("--plot", help="also draw trained/explored env steps/s to this PNG")
     p.set_defaults(func=bench_ued)
 
 
-__all__ = ["UEDBenchResult", "add_ued_bench", "format_table", "ray_overhead", "run_ued_bench"]
+__all__ = ["RestartResult", "UEDBenchResult", "add_ued_bench", "bench_restart", "format_table",
+           "ray_overhead", "run_ued_bench"]
