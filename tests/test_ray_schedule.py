@@ -100,3 +100,27 @@ def test_stale_scores_are_rescored_and_every_batch_committed_once(max_policy_lag
         assert schedule.stats.rescored == 0 and max(lags) >= 1
     versions = service.buffer.column("policy_version")
     assert np.all(versions <= schedule.learner.version)
+
+
+def test_sfl_batches_go_to_every_explorer_before_any_result_is_awaited():
+    log = []
+
+    class Recording:
+        def __init__(self, name):
+            self.name = name
+
+        def learnability(self, params, levels, key, num_steps):
+            log.append(("run", self.name))
+            return np.full(2, float(levels))
+
+    class Gets(SlowRay):
+        def get(self, ref):
+            log.append(("get",))
+            return super().get(ref)
+
+    pool = ExplorerPool(Gets(), [Actor(Recording("a")), Actor(Recording("b"))], ["a", "b"])
+    batches = [(level, jax.random.key(i)) for i, level in enumerate((1, 2, 3))]
+    scores = pool.learnability_batches(None, batches, 8)
+    assert [s[0] for s in scores] == [1.0, 2.0, 3.0]  # in batch order
+    assert log[:3] == [("run", "a"), ("run", "b"), ("run", "a")]  # round-robin, all sent
+    assert log[3:] == [("get",)] * 3  # before the first result is awaited

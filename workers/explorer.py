@@ -59,5 +59,11 @@ class Explorer:
         _, stats = self.rollout(params, levels, key, num_steps)
         return np.asarray(learnability(stats.wins, stats.dones), np.float64)
 
+    def learnability_batches(self, params: Any, batches: list[tuple[EnvParams, jax.Array]],
+                             num_steps: int | None = None) -> list[np.ndarray]:
+        """`learnability` of each (levels, key) batch, in order (one after another here; the
+        Ray driver's pool spreads them over its Explorers)."""
+        return [self.learnability(params, levels, key, num_steps) for levels, key in batches]
+
 
 __all__ = ["Explorer", "scores_of"]

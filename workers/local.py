@@ -208,15 +208,15 @@ class UEDRun:
         """Score sfl_num_batches x sfl_batch_size fresh levels by learnability p (1 - p) under
         the current policy; keep the sfl_top_k most learnable."""
         ued = self.config.ued
-        levels_all, scores_all = [], []
+        batches = []
         for b in range(ued.sfl_num_batches):
             k_levels, k_roll = jax.random.split(jax.random.fold_in(key, b))
-            levels = self.service.fresh(k_levels, ued.sfl_batch_size)
-            scores_all.append(self.explorer.learnability(learner.params, levels, k_roll,
-                                                         ued.sfl_rollout_steps))
-            levels_all.append(to_host(levels))
-            self.sfl_scoring_steps += ued.sfl_batch_size * ued.sfl_rollout_steps
-        levels = jax.tree.map(lambda *xs: np.concatenate(xs), *levels_all)
+            batches.append((self.service.fresh(k_levels, ued.sfl_batch_size), k_roll))
+        scores_all = self.explorer.learnability_batches(learner.params, batches,
+                                                        ued.sfl_rollout_steps)
+        self.sfl_scoring_steps += ued.sfl_num_batches * ued.sfl_batch_size * ued.sfl_rollout_steps
+        levels = jax.tree.map(lambda *xs: np.concatenate(xs),
+                              *(to_host(levels) for levels, _ in batches))
         self.service.set_learnable(levels, np.concatenate(scores_all), ued.sfl_top_k)
 
     # --- evaluation --------------------------------------------------------------------------

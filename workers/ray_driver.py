@@ -409,6 +409,32 @@ class ExplorerPool:
                      num_steps: int | None = None) -> np.ndarray:
         return self._call("learnability", params, levels, key, num_steps)
 
+    def learnability_batches(self, params: ParamsRef, batches: list[tuple[Any, jax.Array]],
+                             num_steps: int | None = None) -> list[np.ndarray]:
+        """SFL's batches spread over the Explorers at once, results in batch order (so the
+        same as one after another); a batch whose Explorer died runs again on its restart."""
+        sent = []
+        for levels, key in batches:
+            i = self._next % len(self._actors)
+            self._next += 1
+            args = (params, levels, key, num_steps)
+            sent.append((i, args, self._actors[i].learnability.remote(*args)))
+        out, revived = [], set()
+        for i, args, ref in sent:
+            try:
+                out.append(self._ray.get(ref))
+            except self._ray.exceptions.RayActorError as err:
+                if self._deaths is None:
+                    raise
+                if i not in revived:  # one death, however many of its batches it took
+                    self._deaths.saw(self._names[i], err,
+                                     "its learnability batches run again on its restart")
+                    wait_restarted(self._ray, self._actors[i], self._names[i])
+                    revived.add(i)
+                out.append(call_restarting(self._ray, self._actors[i], self._names[i],
+                                           "learnability", args, self._deaths))
+        return out
+
 
 class RemoteEvaluator:
     """The evaluator actor behind `workers.evaluator.Evaluator`'s interface (one per suite).
