@@ -8,6 +8,7 @@ share its compiled update; the unit specs are the free parameters (the duel has 
 from __future__ import annotations
 
 import io
+import json
 
 import jax
 import numpy as np
@@ -178,6 +179,11 @@ def test_resume_continues_exactly(tmp_path):
         state_a, key_a, step_a = a.restore(template)
         state_b, key_b, step_b = b.restore(template)
     assert step_a == step_b == 8
+    # The curriculum's step counts continue too: the same state file as the uninterrupted run.
+    assert (full / LEVELS_DIR / "state-8.json").read_bytes() == (
+        part / LEVELS_DIR / "state-8.json").read_bytes()
+    assert sum(json.loads((part / LEVELS_DIR / "state-8.json").read_text())[
+        "branch_counts"].values()) == 8
     assert trees_equal(jax.tree.map(np.asarray, state_a.params),
                        jax.tree.map(np.asarray, state_b.params))
     buf_a = LevelBuffer.load(full / LEVELS_DIR / "buffer-8.msgpack")

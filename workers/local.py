@@ -100,6 +100,7 @@ class UEDRun:
                                                       ued.sfl_update_freq)
         self.service, self.explorer, self.evaluators = service, explorer, list(evaluators)
         self.sfl_scoring_steps = 0
+        self.branch_counts = {b: 0 for b in Branch}  # steps of each kind, over the whole run
 
     @classmethod
     def local(cls, config: TrainConfig) -> tuple[UEDRun, PPOLearner]:
@@ -238,11 +239,14 @@ class UEDRun:
 
     def state(self, learner: Learner) -> dict[str, Any]:
         return {"curriculum": self.curriculum.state_dict(), "version": learner.version,
-                "sfl_scoring_steps": self.sfl_scoring_steps}
+                "sfl_scoring_steps": self.sfl_scoring_steps,
+                "branch_counts": {b.name.lower(): n for b, n in self.branch_counts.items()}}
 
     def load_state(self, state: dict[str, Any]) -> int:
         self.curriculum.load_state_dict(state["curriculum"])
         self.sfl_scoring_steps = int(state.get("sfl_scoring_steps", 0))
+        counts = state.get("branch_counts", {})  # absent from older snapshots: start at 0
+        self.branch_counts = {b: int(counts.get(b.name.lower(), 0)) for b in Branch}
         return int(state["version"])
 
 
@@ -371,7 +375,7 @@ def train_ued(config: TrainConfig, run_dir: Path, *, resume: bool = False,
         stream.flush()
 
     writer = SummaryWriter(run_dir / EVENTS_DIR)
-    counts = {b: 0 for b in Branch}
+    counts = run.branch_counts  # restored on resume: the progress line counts the whole run
     try:
         clock = ThroughputClock(start, ppo.steps_per_update)
         for step in range(start, stop):

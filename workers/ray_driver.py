@@ -900,6 +900,7 @@ class RayDriver(Driver):
                 else:
                     branch, metrics, levels = asynchronous.step(step, k_step)
                 counts[branch] += 1
+                run.branch_counts[branch] += 1
                 done = step + 1
                 last = done == stop
                 if chaos_every and done % chaos_every == 0 and not last:
@@ -923,7 +924,7 @@ class RayDriver(Driver):
                         values.update(level_summary(levels))
                     if run.sfl_scoring_steps:
                         values["sfl/scoring_env_steps"] = float(run.sfl_scoring_steps)
-                    extra = branch_text(counts, service.buffer_size())
+                    extra = branch_text(run.branch_counts, service.buffer_size())
                     if asynchronous is not None:
                         values.update(asynchronous.stats.scalars(
                             len(workers.explorers), len(asynchronous.pending)))
