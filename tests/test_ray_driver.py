@@ -176,19 +176,27 @@ def test_ued_bench_cli_rejects_bad_arguments(capsys):
     assert "ued.method: tabx bench ued needs a UED config" in capsys.readouterr().err
 
 
-def test_eval_suite_on_a_ray_actor_gives_the_local_table(tmp_path, capsys):
+def duel_suite(folder):
+    """A two-entry suite on the evaluation tests' duels, whose outcome does not depend on the
+    policy (the weak allies lose, the weak enemies lose): win rates 0 then 1."""
     from test_eval_suites import weak_level
 
     from tabx.scenarios import level_to_scenario, save_scenario
-    from tabx_ued.cli import main
 
     for weak in ("ally", "enemy"):
-        save_scenario(tmp_path / f"weak_{weak}.json",
+        save_scenario(folder / f"weak_{weak}.json",
                       level_to_scenario(weak_level(weak), name=f"weak_{weak}"))
-    suite = tmp_path / "duels.yaml"
+    suite = folder / "duels.yaml"
     suite.write_text("name: duels\nepisodes: 2\nentries:\n"
-                     f"  - scenario: {tmp_path / 'weak_ally.json'}\n    opponent: random\n"
-                     f"  - scenario: {tmp_path / 'weak_enemy.json'}\n    opponent: idle\n")
+                     f"  - scenario: {folder / 'weak_ally.json'}\n    opponent: random\n"
+                     f"  - scenario: {folder / 'weak_enemy.json'}\n    opponent: idle\n")
+    return suite
+
+
+def test_eval_suite_on_a_ray_actor_gives_the_local_table(tmp_path, capsys):
+    from tabx_ued.cli import main
+
+    suite = duel_suite(tmp_path)
     run = train(ued_config("dr"), run_dir=tmp_path / "run", stream=io.StringIO(),
                 max_updates=1)
     outputs = {}
@@ -326,19 +334,10 @@ def test_an_evaluator_killed_mid_evaluation_runs_it_again_on_its_restart(tmp_pat
                                                                           monkeypatch):
     import signal
 
-    from test_eval_suites import weak_level
-
-    from tabx.scenarios import level_to_scenario, save_scenario
     from ued.tensorboard import read_scalars
     from workers.ray_driver import AsyncRun
 
-    for weak in ("ally", "enemy"):
-        save_scenario(tmp_path / f"weak_{weak}.json",
-                      level_to_scenario(weak_level(weak), name=f"weak_{weak}"))
-    suite = tmp_path / "duels.yaml"
-    suite.write_text("name: duels\nepisodes: 2\nentries:\n"
-                     f"  - scenario: {tmp_path / 'weak_ally.json'}\n    opponent: random\n"
-                     f"  - scenario: {tmp_path / 'weak_enemy.json'}\n    opponent: idle\n")
+    suite = duel_suite(tmp_path)
     killed = []
     original = AsyncRun.submit_evaluation
 

@@ -42,6 +42,7 @@ from tabx.bench_cli import int_at_least, int_list
 from tabx.errors import UserError
 from tabx.files import atomic_write_text
 from ued.config import ConfigError, TrainConfig, load_config
+from ued.experiment import learner_for
 from workers.learner import Learner
 from workers.local import UEDRun
 
@@ -347,7 +348,7 @@ def bench_restart(ray: Any, config: TrainConfig, compile_cache: bool,
         service = spawn(LevelServiceActor, num_cpus=0)
         explorer = spawn(ExplorerActor, num_cpus=1, max_restarts=-1, max_task_retries=0)
         try:
-            ppo = UEDRun.local(setting)[1]
+            ppo = learner_for(setting)
             params = ParamsRef(0, [ray.put(jax.device_get(ppo.init(jax.random.key(0)).params))])
             levels = service.fresh.remote(jax.random.key(1), config.learner.num_envs)
 

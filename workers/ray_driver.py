@@ -635,7 +635,6 @@ class AsyncRun:
                 "reissued": self.stats.reissued,
                 "evaluations_rerun": self.stats.evaluations_rerun,
                 "evaluations_lost": self.stats.evaluations_lost,
-                "restarts": dict(sorted(self.deaths.count.items())),
                 "explored_steps": self.stats.explored_steps,
                 "learner_busy_s": self.stats.learner_busy_s,
                 "wait_for_levels_s": self.stats.wait_for_levels_s}
@@ -764,6 +763,12 @@ class AsyncRun:
         return branch, metrics, levels
 
 
+def need_ued(config: TrainConfig) -> None:
+    if not config.ued.enabled:
+        raise ConfigError("ray.enabled: the Ray driver runs UED runs (ued.method); a plain "
+                          "MARL run trains in one process: drop ray.enabled")
+
+
 class RunRecord:
     """`RUN_DIR/ray.json`: written when the actors are up (`status: running`, the cluster's
     address and the actors' names, so that `tabx runs status` and `tabx runs buffer` can find
@@ -784,9 +789,7 @@ class RayDriver(Driver):
     name = "ray"
 
     def check(self, config: TrainConfig) -> None:
-        if not config.ued.enabled:
-            raise ConfigError("ray.enabled: the Ray driver runs UED runs (ued.method); a plain "
-                              "MARL run trains in one process: drop ray.enabled")
+        need_ued(config)
         import_ray()
         if config.ray.address:
             check_reachable(config.ray.address)
@@ -794,9 +797,7 @@ class RayDriver(Driver):
     def run(self, config: TrainConfig, run_dir: Path, *, resume: bool = False,
             max_updates: int | None = None, progress: bool = True,
             stream: TextIO | None = None, callback: Callback | None = None) -> Path:
-        if not config.ued.enabled:
-            raise ConfigError("ray.enabled: the Ray driver runs UED runs (ued.method); a plain "
-                              "MARL run trains in one process: drop ray.enabled")
+        need_ued(config)
         stream = sys.stderr if stream is None else stream
         ray, started = connect(config.ray)
         workers = None
@@ -877,6 +878,12 @@ class RayDriver(Driver):
                                                            deaths)
         chaos_every = config.ray.chaos_kill_explorer_every if workers.explorers else 0
         chaos_kills = 0
+
+        def schedule_fields() -> dict[str, Any]:
+            """What `ray.json` says of the schedule so far (this session's branches)."""
+            fields = {"branches": {b.name.lower(): n for b, n in counts.items()},
+                      "restarts": dict(sorted(deaths.count.items()))}
+            return {**fields, **(asynchronous.record() if asynchronous else {})}
         stop = total if max_updates is None else min(total, start + max_updates)
         bar = Progress(total, stream) if progress else None
         if progress:
@@ -924,19 +931,16 @@ class RayDriver(Driver):
                         values.update(level_summary(levels))
                     if run.sfl_scoring_steps:
                         values["sfl/scoring_env_steps"] = float(run.sfl_scoring_steps)
-                    extra = branch_text(run.branch_counts, service.buffer_size())
+                    buffer_size = service.buffer_size()  # one call to the service per log
+                    extra = branch_text(run.branch_counts, buffer_size)
                     if asynchronous is not None:
                         values.update(asynchronous.stats.scalars(
                             len(workers.explorers), len(asynchronous.pending)))
-                        extra = asynchronous.stats.text(len(workers.explorers),
-                                                        service.buffer_size())
+                        extra = asynchronous.stats.text(len(workers.explorers), buffer_size)
                     log_update(writer, bar, None, done, None, values, ppo.steps_per_update,
                                rate, total, last, extra=extra)
-                    record.update(**{"steps": [start, done], "env_steps_per_s": rate,
-                                     "branches": {b.name.lower(): n for b, n in counts.items()},
-                                     "buffer_size": service.buffer_size(),
-                                     "restarts": dict(sorted(deaths.count.items())),
-                                     **(asynchronous.record() if asynchronous else {})})
+                    record.update(steps=[start, done], env_steps_per_s=rate,
+                                  buffer_size=buffer_size, **schedule_fields())
                     if callback is not None:
                         callback(done, learner.train_state, {k: float(v)
                                                              for k, v in values.items()})
@@ -961,11 +965,8 @@ class RayDriver(Driver):
                 placement_end = workers.placement(ray)
             except (ray.exceptions.RayActorError, RunStopped):
                 placement_end = None
-            record.update(**{"branches": {b.name.lower(): n for b, n in counts.items()},
-                             "placement_end": placement_end,
-                             "steps": [start, stop], "chaos_kills": chaos_kills,
-                             "restarts": dict(sorted(deaths.count.items())),
-                             **(asynchronous.record() if asynchronous else {})})
+            record.update(placement_end=placement_end, steps=[start, stop],
+                          chaos_kills=chaos_kills, **schedule_fields())
         finally:
             writer.close()
             checkpoints.close()
