@@ -23,11 +23,13 @@ import ray  # noqa: E402
 from test_ued_train import ued_config  # noqa: E402
 
 from level_buffer import LevelBuffer  # noqa: E402
+from level_buffer.commit_log import read  # noqa: E402
 from ued.checkpoint import Checkpoints  # noqa: E402
 from ued.config import ConfigError  # noqa: E402
 from ued.run_folder import CHECKPOINT_DIR, LEVELS_DIR  # noqa: E402
+from workers.durable_service import LOG_NAME  # noqa: E402
 from workers.local import UEDRun  # noqa: E402
-from workers.ray_driver import RAY_RECORD  # noqa: E402
+from workers.ray_driver import RAY_NAMESPACE, RAY_RECORD  # noqa: E402
 from workers.train import train  # noqa: E402
 
 STEPS = 6
@@ -72,7 +74,10 @@ def test_deterministic_mode_equals_the_local_driver(tmp_path, method):
     assert trees_equal(state_a.opt_state, state_b.opt_state)
     assert np.array_equal(key_a, key_b)
     snapshots = sorted(p.name for p in (local / LEVELS_DIR).iterdir())
-    assert snapshots == sorted(p.name for p in (remote / LEVELS_DIR).iterdir())
+    remote_files = sorted(p.name for p in (remote / LEVELS_DIR).iterdir())
+    # The same snapshots, and the service's commit log since the last one (empty).
+    assert remote_files == sorted([*snapshots, LOG_NAME.format(STEPS)])
+    assert read(remote / LEVELS_DIR / LOG_NAME.format(STEPS)).records == []
     assert any(name.endswith(".msgpack") for name in snapshots)  # a buffer or SFL's set
     for name in snapshots:  # buffer, SFL's learnable set, curriculum state: byte for byte
         assert (local / LEVELS_DIR / name).read_bytes() == (remote / LEVELS_DIR / name
@@ -372,3 +377,59 @@ def test_ued_bench_times_an_explorer_restart():
     result = bench_restart(ray, ued_config("robust_plr"), True, out)
     assert result.first_score_s > 0 and 0 < result.ready_s <= result.restarted_score_s
     assert "restart, compilation cache on: back in" in out.getvalue()
+
+
+def kill_service_at(run_dir, steps):
+    """A progress callback that SIGKILLs the level service's own process after these steps."""
+    import signal
+
+    def kill(done, train_state, values):
+        if done in steps:
+            name = json.loads((run_dir / RAY_RECORD).read_text())["actors"]["service"]
+            service = ray.get_actor(name, namespace=RAY_NAMESPACE)
+            os.kill(ray.get(service.pid.remote()), signal.SIGKILL)
+    return kill
+
+
+def test_a_killed_service_restarts_with_every_commit_and_the_run_equals_the_local_one(
+        tmp_path):
+    # Deterministic: killed after step 3 (it restores from the start of the session and its
+    # log) and after step 5 (from the snapshot of step 4 and its log). Parameters, key and
+    # every snapshot equal the local driver's uninterrupted run: no commit lost or repeated.
+    method, steps = "accel", 7
+    local = train(ued_config(method, **{"run.checkpoint_every": 4}), run_dir=tmp_path / "local",
+                  stream=io.StringIO(), max_updates=steps)
+    run_dir = tmp_path / "ray"
+    config = ray_config(method, **{"ray.deterministic": "true", "ray.explorers": 1,
+                                   "run.checkpoint_every": 4})
+    out = io.StringIO()
+    train(config, run_dir=run_dir, stream=out, max_updates=steps,
+          callback=kill_service_at(run_dir, {3, 5}))
+    record = json.loads((run_dir / RAY_RECORD).read_text())
+    assert record["restarts"] == {"service": 2}, out.getvalue()[-2000:]
+    assert out.getvalue().count("ray: service died") == 2
+    state_a, key_a, _ = final_state(local, ued_config(method))
+    state_b, key_b, _ = final_state(run_dir, ued_config(method))
+    assert trees_equal(state_a.params, state_b.params) and np.array_equal(key_a, key_b)
+    for name in sorted(p.name for p in (local / LEVELS_DIR).iterdir()):
+        assert (local / LEVELS_DIR / name).read_bytes() == (run_dir / LEVELS_DIR / name
+                                                            ).read_bytes(), name
+
+
+def test_a_killed_service_loses_no_committed_batch_in_the_asynchronous_mode(tmp_path):
+    # Explorer batches in flight when the service dies lose their levels with it: they are
+    # asked for again and committed once; every commit acknowledged before the death stays.
+    run_dir = tmp_path / "async"
+    config = ray_config("robust_plr", **{"ray.explorers": 1, "ray.max_inflight": 2,
+                                         "ued.replay_prob": 0.5, "ued.buffer_size": 32,
+                                         "ued.min_fill_ratio": 0.25})
+    out = io.StringIO()
+    train(config, run_dir=run_dir, stream=out, max_updates=10,
+          callback=kill_service_at(run_dir, {3, 7}))
+    record = json.loads((run_dir / RAY_RECORD).read_text())
+    assert record["restarts"] == {"service": 2}, out.getvalue()[-2000:]
+    assert record["ledger"] == {"committed": 10}
+    new = record["branches"]["new"]
+    assert record["committed_batches"] == new
+    buffer = LevelBuffer.load(run_dir / LEVELS_DIR / "buffer-10.msgpack")
+    assert buffer.stats["insert_attempts"] == 4 * new  # none lost, none counted twice

@@ -19,7 +19,8 @@ from test_ued_train import ued_config
 from ued.curricula import Branch
 from workers.actors import ExplorerActor, LearnerActor, LevelServiceActor
 from workers.local import UEDRun
-from workers.ray_driver import AsyncRun, Blocking, ExplorerPool, RemoteLearner, Workers
+from workers.ray_driver import AsyncRun, ExplorerPool, RemoteLearner, Workers
+from workers.ray_restarts import ActorDeaths, RemoteService
 
 
 class Ref:
@@ -69,9 +70,10 @@ def run_async(max_policy_lag: int, steps: int = 14):
     workers = Workers(Actor(LevelServiceActor(config)), Actor(learner_actor),
                       [Actor(explorer_actor)], None, 0.0)
     learner_actor.init(jax.random.key(0))
-    run = UEDRun(config, Blocking(ray, workers.service), ExplorerPool(ray, workers.scorers()),
-                 [])
-    schedule = AsyncRun(ray, config, run, RemoteLearner(ray, workers.learner), workers)
+    service = RemoteService(ray, workers.service, ActorDeaths(None))
+    run = UEDRun(config, service, ExplorerPool(ray, workers.scorers()), [])
+    schedule = AsyncRun(ray, config, run, RemoteLearner(ray, workers.learner), workers,
+                        service=service)
     key = jax.random.key(config.seed)
     branches = []
     for step in range(steps):

@@ -29,6 +29,7 @@ CONFIG_FILE = "config.yaml"
 EVENTS_DIR = "events"
 CHECKPOINT_DIR = "checkpoints"
 LEVELS_DIR = "levels"
+SET_ASIDE_DIR = "set-aside"  # files a resume or a restart moved away, kept for inspection
 
 
 def new_run_dir(config: TrainConfig) -> Path:
@@ -111,5 +112,6 @@ def load_policy(run_dir: str | Path, checkpoint: int | None = None) -> TrainedPo
     return TrainedPolicy(run_dir, config, learner, state.params, update)
 
 
-__all__ = ["CHECKPOINT_DIR", "CONFIG_FILE", "EVENTS_DIR", "LEVELS_DIR", "TrainedPolicy",
-           "create_run_dir", "load_policy", "new_run_dir", "open_checkpoints", "read_run_config"]
+__all__ = ["CHECKPOINT_DIR", "CONFIG_FILE", "EVENTS_DIR", "LEVELS_DIR", "SET_ASIDE_DIR",
+           "TrainedPolicy", "create_run_dir", "load_policy", "new_run_dir", "open_checkpoints",
+           "read_run_config"]

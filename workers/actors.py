@@ -31,10 +31,11 @@ from ued.config import TrainConfig
 from ued.experiment import learner_for
 from ued.learners.ppo import PPOLearner
 from ued.suites import EvalSuite
+from workers.durable_service import DurableLevelService
 from workers.evaluator import Evaluator, SuiteResult
 from workers.explorer import Explorer
 from workers.learner import Learner
-from workers.level_service import LevelService, to_device, to_host
+from workers.level_service import to_device, to_host
 from workers.local import evaluators_for, level_service_for
 
 
@@ -93,14 +94,16 @@ class ParamsCache:
         return self.params
 
 
-class LevelServiceActor(LevelService, ActorBase):
-    """The LevelService: the only writer of the buffer. Levels go out on the host."""
+class LevelServiceActor(DurableLevelService, ActorBase):
+    """The LevelService: the only writer of the buffer. Levels go out on the host. With a
+    `folder` (the run's `levels/`) its state-changing calls are logged there, and a restart
+    (the constructor again, same arguments) restores them (`workers.durable_service`)."""
 
-    def __init__(self, config: TrainConfig):
+    def __init__(self, config: TrainConfig, folder: str | None = None, session: str = ""):
         ActorBase.__init__(self, config)
         built = level_service_for(config, learner_for(config))
         super().__init__(built.generator, built.template, config.ued, seed=config.seed,
-                         use_buffer=built.buffer is not None)
+                         use_buffer=built.buffer is not None, folder=folder, session=session)
 
     def fresh(self, key: jax.Array, n: int) -> EnvParams:
         return to_host(super().fresh(key, n))

@@ -64,11 +64,21 @@ from workers.actors import (
 )
 from workers.driver import Callback, Driver, RunStopped
 from workers.local import UEDRun, branch_text, level_summary
+from workers.ray_restarts import (
+    MAX_CALL_FAILURES,
+    ActorDeaths,
+    RemoteService,
+    call_restarting,
+    death_cause,
+    is_actor,
+    wait_restarted,
+)
 from workers.resume import restore_intact
 
 RAY_ENV = {"RAY_USAGE_STATS_ENABLED": "0"}
 RAY_RECORD = "ray.json"  # in the run folder: where the actors run, what was committed
 RAY_NAMESPACE = "tabx-ued"  # of the named actors of runs (`tabx runs buffer` finds them)
+RESTART_WAIT_S = 30.0  # for a call sent to a service that died to report its failure
 
 
 def import_ray() -> Any:
@@ -191,10 +201,11 @@ class Workers:
 
 
 def start_workers(ray: Any, config: TrainConfig, stream: TextIO,
-                  run_name: str | None = None) -> Workers:
+                  run_name: str | None = None, levels_dir: Path | None = None) -> Workers:
     """The run's actors, constructed (their constructors build each one's part of the run).
     With `run_name` they are named actors, `RUN_NAME/ROLE` in `RAY_NAMESPACE`, so that another
-    process (`tabx runs buffer`) can reach them."""
+    process (`tabx runs buffer`) can reach them. With `levels_dir` the service logs its
+    commits there (and may restart: it replays them)."""
     section = config.ray
     gpus = learner_gpus(ray, section)
     if not section.address:
@@ -213,8 +224,8 @@ def start_workers(ray: Any, config: TrainConfig, stream: TextIO,
                               **options).remote(*args)
 
     # Explorers and the evaluator hold nothing that a restart loses (their parameters come
-    # with each call); the service and the learner hold the run's state: they are not
-    # restarted, their death stops the run (resume from the last checkpoint).
+    # with each call); the service restores its state from its snapshot and commit log; the
+    # learner is not restarted: its death stops the run (resume from the last checkpoint).
     restarts = section.actor_restarts
     # The service sits on the driver's node, which calls it every step and whose loss ends
     # the run anyway (it reserves no CPU, so it always fits there; a soft affinity was not
@@ -224,7 +235,9 @@ def start_workers(ray: Any, config: TrainConfig, stream: TextIO,
 
     driver_node = ray.get_runtime_context().get_node_id()
     # The service and evaluator are light: they share CPUs with the others.
-    service = spawn(LevelServiceActor, "service", config, num_cpus=0,
+    service = spawn(LevelServiceActor, "service", config,
+                    None if levels_dir is None else str(levels_dir), run_name or "",
+                    num_cpus=0, restarts=restarts if levels_dir is not None else 0,
                     scheduling_strategy=NodeAffinitySchedulingStrategy(driver_node, soft=False))
     learner = spawn(LearnerActor, "learner", config, num_gpus=gpus, num_cpus=1 if not gpus else 0,
                     **({} if gpus else {"scheduling_strategy": NodeAffinitySchedulingStrategy(
@@ -322,68 +335,6 @@ class RemoteLearner:
         return self._ray.get(self._actor.train_state.remote())
 
 
-MAX_CALL_FAILURES = 5  # one call failing this often in a row stops the run
-
-
-def death_cause(err: Exception) -> str:
-    """The first line of an actor error: what Ray says killed it."""
-    text = str(err).strip()
-    return text.splitlines()[0] if text else type(err).__name__
-
-
-class ActorDeaths:
-    """Deaths of the restartable actors (Explorers, the Evaluator): counted by name and
-    logged with their cause on the run's stream."""
-
-    def __init__(self, stream: TextIO | None):
-        self.stream, self.count = stream, Counter()
-
-    def saw(self, name: str, err: Exception, then: str) -> None:
-        self.count[name] += 1
-        if self.stream is not None:
-            self.stream.write(f"ray: {name} died ({death_cause(err)}); {then}\n")
-            self.stream.flush()
-
-
-RESTART_TIMEOUT_S = 300.0  # an actor not back after this long stops the run
-
-
-def wait_restarted(ray: Any, actor: Any, name: str,
-                   timeout_s: float = RESTART_TIMEOUT_S) -> None:
-    """Wait until a restarting actor answers again: calls sent while it restarts fail ("the
-    actor is restarting") rather than wait for it."""
-    deadline = time.perf_counter() + timeout_s
-    while True:
-        try:
-            ray.get(actor.ready.remote(), timeout=max(deadline - time.perf_counter(), 0.1))
-            return
-        except ray.exceptions.ActorUnavailableError:
-            if time.perf_counter() > deadline:
-                break
-            time.sleep(0.2)
-        except (ray.exceptions.ActorDiedError, ray.exceptions.GetTimeoutError) as err:
-            raise RunStopped(f"{name} did not come back ({death_cause(err)}); raise "
-                             f"ray.actor_restarts (-1: no limit)") from err
-    raise RunStopped(f"{name} did not come back within {timeout_s:.0f} s")
-
-
-def call_restarting(ray: Any, actor: Any, name: str, method: str, args: tuple,
-                    deaths: ActorDeaths | None) -> Any:
-    """`actor.method(*args)`, waited for; where the actor dies (and `deaths` says it may be
-    restarted) the same call runs again on its restart. Without `deaths` an error raises."""
-    for _ in range(MAX_CALL_FAILURES):
-        try:
-            return ray.get(getattr(actor, method).remote(*args))
-        except ray.exceptions.RayActorError as err:
-            if deaths is None:
-                raise
-            deaths.saw(name, err, f"{method} runs again on its restart")
-            wait_restarted(ray, actor, name)
-            error = err
-    raise RunStopped(f"{name}: {method} failed {MAX_CALL_FAILURES} times in a row "
-                     f"({death_cause(error)})")
-
-
 class ExplorerPool:
     """Explorer actors behind `workers.explorer.Explorer`'s interface: calls go round-robin and
     wait (the deterministic mode). A call whose Explorer dies runs again on its restart with
@@ -475,6 +426,8 @@ class Batch:
     version: int
     explorer: int
     parent_ids: np.ndarray | None = None
+    level_call: tuple[str, tuple] = ("fresh", ())  # the service call that made the levels
+    levels_incarnation: int = 0  # of the service when it was asked for them
     issued_s: float = field(default_factory=time.perf_counter)
     rescored: int = 0
     incarnation: int = 0  # of the Explorer it was last submitted to
@@ -545,12 +498,16 @@ class AsyncRun:
     """The asynchronous schedule over the actors of one run (see the module doc)."""
 
     def __init__(self, ray: Any, config: TrainConfig, run: UEDRun, learner: RemoteLearner,
-                 workers: Workers, deaths: ActorDeaths | None = None):
+                 workers: Workers, deaths: ActorDeaths | None = None,
+                 service: RemoteService | None = None):
         self.ray, self.config, self.run, self.learner, self.workers = (ray, config, run,
                                                                        learner, workers)
         self.scorers = workers.scorers()
         self.names = workers.scorer_names()
         self.deaths = ActorDeaths(None) if deaths is None else deaths
+        self.service = (RemoteService(ray, workers.service, self.deaths) if service is None
+                        else service)
+        self.service.on_restart.append(self.ask_again_for_lost_levels)
         self.pending: dict[Any, Batch] = {}
         self.inflight = [0] * len(self.scorers)
         # Deaths seen per scorer: a result lost with incarnation k is one death only if the
@@ -659,12 +616,42 @@ class AsyncRun:
         self.inflight[batch.explorer] += 1
         batch.incarnation = self.incarnation[batch.explorer]
 
-    def explore(self, step: int, branch: Branch, levels_ref: Any, key: jax.Array,
+    def explore(self, step: int, branch: Branch, level_call: tuple[str, tuple], key: jax.Array,
                 parent_ids: np.ndarray | None = None) -> None:
+        """Issue step `step`: the service makes its levels (`level_call`: method, args), an
+        Explorer scores them; the driver holds only the refs."""
         i = self._free_explorer()
-        batch = Batch(step, branch, levels_ref, key, self.learner.version, i, parent_ids)
+        batch = Batch(step, branch, None, key, self.learner.version, i, parent_ids, level_call)
+        self._ask_for_levels(batch)
         self.ledger[step] = "issued"
         self._submit(batch)
+
+    def _ask_for_levels(self, batch: Batch) -> None:
+        method, args = batch.level_call
+        batch.levels = getattr(self.workers.service, method).remote(*args)
+        batch.levels_incarnation = self.service.incarnation
+
+    def _levels_lost(self, batch: Batch) -> bool:
+        """Whether the levels of `batch` died with the service (asked for before its restart
+        and never made)."""
+        if batch.levels_incarnation == self.service.incarnation:
+            return False
+        self.ray.wait([batch.levels], timeout=RESTART_WAIT_S)
+        try:
+            self.ray.get(batch.levels, timeout=0)
+        except self.ray.exceptions.RayError:
+            return True
+        batch.levels_incarnation = self.service.incarnation  # made before the death: kept
+        return False
+
+    def ask_again_for_lost_levels(self) -> None:
+        """After a restart of the service: ask again, in step order and before anything else,
+        for the levels of every batch that died with it. Same calls, same keys: the restored
+        service makes the same levels (an ACCEL parent is still in the buffer, since the
+        inserts after it run after it, as before)."""
+        for batch in sorted(self.pending.values(), key=lambda b: b.step):
+            if self._levels_lost(batch):
+                self._ask_for_levels(batch)
 
     def collect(self, block: bool) -> None:
         """Commit the explorer results that are ready (wait for one if `block`)."""
@@ -695,7 +682,20 @@ class AsyncRun:
 
     def reissue(self, batch: Batch, err: Exception) -> None:
         """The Explorer of `batch` died with it: submit the batch again, with the current
-        parameters (Ray's own retry would reuse the old ones), to the Explorer's restart."""
+        parameters (Ray's own retry would reuse the old ones), to the Explorer's restart. Or
+        the service died before it made the batch's levels: ask for them again, then submit."""
+        if is_actor(err, self.workers.service):
+            self.service.restarted(err, batch.levels_incarnation)
+            if self._levels_lost(batch):
+                self._ask_for_levels(batch)
+            batch.failures += 1
+            if batch.failures >= MAX_CALL_FAILURES:
+                raise RunStopped(f"the levels of step {batch.step} were lost with the service "
+                                 f"{MAX_CALL_FAILURES} times in a row ({death_cause(err)})")
+            self.stats.reissued += 1
+            batch.version = self.learner.version
+            self._submit(batch)
+            return
         if self.names[batch.explorer] == "learner":
             raise err  # the learner is not restarted: the run stops
         i = batch.explorer
@@ -715,11 +715,9 @@ class AsyncRun:
         self._submit(batch)
 
     def commit(self, batch: Batch, scores: np.ndarray, best: np.ndarray, lag: int) -> None:
-        service = self.workers.service
         source = Source.MUTATION if batch.branch == Branch.MUTATE else Source.RANDOM
         parents = -1 if batch.parent_ids is None else batch.parent_ids
-        self.ray.get(service.insert.remote(batch.levels, scores, best, batch.version, source,
-                                           parents))
+        self.service.insert(batch.levels, scores, best, batch.version, source, parents)
         self.ledger[batch.step] = "committed"
         self.stats.committed += 1
         self.stats.staleness[lag] += 1
@@ -735,7 +733,7 @@ class AsyncRun:
     def step(self, step: int, key: jax.Array) -> tuple[Branch, dict[str, Any] | None, Any]:
         """Decide and issue curriculum step `step`. Explorer batches return at once (metrics
         None); learner batches wait for the update."""
-        run, learner, service = self.run, self.learner, self.workers.service
+        run, learner = self.run, self.learner
         n = self.config.learner.num_envs
         keys = jax.random.split(key, 3)  # levels, rollout, edits (as UEDRun.step)
         k_levels, k_roll, k_edit = keys
@@ -747,11 +745,11 @@ class AsyncRun:
         if not curriculum.learns(branch):
             # Levels go from the service to an Explorer as a ref: the driver never holds them.
             if branch == Branch.NEW:
-                self.explore(step, branch, service.fresh.remote(k_levels, n), k_roll)
+                self.explore(step, branch, ("fresh", (k_levels, n)), k_roll)
             else:
                 parent_ids = np.asarray(curriculum.last_replay_ids, np.int64)
-                self.explore(step, branch, service.mutate_ids.remote(k_edit, parent_ids),
-                             k_roll, parent_ids)
+                self.explore(step, branch, ("mutate_ids", (k_edit, parent_ids)), k_roll,
+                             parent_ids)
         else:
             t0 = time.perf_counter()
             metrics, levels, replay_ids = run.learning_step(learner, branch, step, keys)
@@ -804,7 +802,7 @@ class RayDriver(Driver):
         record = RunRecord(run_dir / RAY_RECORD)
         run_name = f"{run_dir.name}-{uuid.uuid4().hex[:8]}"
         try:
-            workers = start_workers(ray, config, stream, run_name)
+            workers = start_workers(ray, config, stream, run_name, run_dir / LEVELS_DIR)
             record.update(status="running", driver_pid=os.getpid(),
                           address=ray.get_runtime_context().gcs_address,
                           namespace=RAY_NAMESPACE,
@@ -840,8 +838,8 @@ class RayDriver(Driver):
                record: RunRecord, *,
                resume: bool, max_updates: int | None, progress: bool, stream: TextIO,
                callback: Callback | None) -> Path:
-        service = Blocking(ray, workers.service)
         deaths = ActorDeaths(stream)  # logged even when quiet: a death is news
+        service = RemoteService(ray, workers.service, deaths)
         explorers = workers.explorer_pool(ray, deaths)
         evaluators = [RemoteEvaluator(ray, workers.evaluator, i, name, deaths)
                       for i, name in enumerate(config.ued.eval_suites)]
@@ -875,7 +873,7 @@ class RayDriver(Driver):
                       learner_gpus=workers.gpus, placement=placement, steps=[start, start],
                       total_steps=total)
         asynchronous = None if deterministic else AsyncRun(ray, config, run, learner, workers,
-                                                           deaths)
+                                                           deaths, service)
         chaos_every = config.ray.chaos_kill_explorer_every if workers.explorers else 0
         chaos_kills = 0
 

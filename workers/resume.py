@@ -24,10 +24,8 @@ from level_buffer import LevelBuffer
 from level_buffer.fileformat import BufferFileError
 from ued.checkpoint import Checkpoints
 from ued.config import ConfigError
-from ued.run_folder import CHECKPOINT_DIR, LEVELS_DIR
+from ued.run_folder import CHECKPOINT_DIR, LEVELS_DIR, SET_ASIDE_DIR
 from workers.level_service import SNAPSHOT_FILES
-
-SET_ASIDE_DIR = "set-aside"
 
 
 @dataclass(frozen=True)
