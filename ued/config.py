@@ -210,6 +210,9 @@ class UEDSection:
                "suite names must be non-empty strings")
 
 
+CHAOS_ROLES = ("explorer", "service", "evaluator")  # the actors a run restarts
+
+
 @dataclass(frozen=True)
 class RaySection:
     """Running a UED run's workers as Ray actors (docs/distributed.md). Off by default: the
@@ -225,7 +228,9 @@ class RaySection:
     num_cpus: int = 0  # CPUs of a Ray started here (0: Ray's own count)
     object_store_mb: int = 512  # object store of a Ray started here
     actor_restarts: int = -1  # restarts of each Explorer and the Evaluator (-1: no limit)
-    chaos_kill_explorer_every: int = 0  # kill an Explorer every N steps (0: never)
+    chaos_kill_every: int = 0  # kill one of `chaos_roles`' actors every N steps (0: never)
+    chaos_kill_every_s: float = 0.0  # ... or every N seconds (0: never)
+    chaos_roles: str = "explorer"  # whose actors chaos kills, in turn: explorer,service,evaluator
 
     def validate(self, prefix: str = "ray") -> None:
         _check(self.explorers >= 0, f"{prefix}.explorers",
@@ -241,8 +246,14 @@ class RaySection:
                f"must be >= 64, got {self.object_store_mb}")
         _check(self.actor_restarts >= -1, f"{prefix}.actor_restarts",
                f"must be -1 (no limit) or >= 0, got {self.actor_restarts}")
-        _check(self.chaos_kill_explorer_every >= 0, f"{prefix}.chaos_kill_explorer_every",
-               f"must be >= 0 (0: never), got {self.chaos_kill_explorer_every}")
+        _check(self.chaos_kill_every >= 0, f"{prefix}.chaos_kill_every",
+               f"must be >= 0 (0: never), got {self.chaos_kill_every}")
+        _check(self.chaos_kill_every_s >= 0, f"{prefix}.chaos_kill_every_s",
+               f"must be >= 0 (0: never), got {self.chaos_kill_every_s}")
+        roles = [r.strip() for r in self.chaos_roles.split(",")]
+        _check(bool(roles) and all(r in CHAOS_ROLES for r in roles), f"{prefix}.chaos_roles",
+               f"must be a comma-separated list of {', '.join(CHAOS_ROLES)} (the actors that "
+               f"restart), got {self.chaos_roles!r}")
 
 
 @dataclass(frozen=True)

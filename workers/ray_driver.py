@@ -67,6 +67,7 @@ from workers.local import UEDRun, branch_text, level_summary
 from workers.ray_restarts import (
     MAX_CALL_FAILURES,
     ActorDeaths,
+    Chaos,
     RemoteService,
     call_restarting,
     death_cause,
@@ -761,6 +762,12 @@ class AsyncRun:
         return branch, metrics, levels
 
 
+def driver_refs(ray: Any) -> int:
+    """Object refs this process holds (`ray/driver_refs`): flat over a healthy run, whatever
+    its length; a count that grows with the steps is a leak (objects pinned in the store)."""
+    return len(ray._private.worker.global_worker.core_worker.get_all_reference_counts())
+
+
 def need_ued(config: TrainConfig) -> None:
     if not config.ued.enabled:
         raise ConfigError("ray.enabled: the Ray driver runs UED runs (ued.method); a plain "
@@ -874,8 +881,8 @@ class RayDriver(Driver):
                       total_steps=total)
         asynchronous = None if deterministic else AsyncRun(ray, config, run, learner, workers,
                                                            deaths, service)
-        chaos_every = config.ray.chaos_kill_explorer_every if workers.explorers else 0
-        chaos_kills = 0
+        chaos = Chaos(ray, config.ray, list(zip(workers.names(), workers.all(), strict=True)),
+                      stream)
 
         def schedule_fields() -> dict[str, Any]:
             """What `ray.json` says of the schedule so far (this session's branches)."""
@@ -908,13 +915,7 @@ class RayDriver(Driver):
                 run.branch_counts[branch] += 1
                 done = step + 1
                 last = done == stop
-                if chaos_every and done % chaos_every == 0 and not last:
-                    i = (done // chaos_every - 1) % len(workers.explorers)
-                    ray.kill(workers.explorers[i], no_restart=False)
-                    chaos_kills += 1
-                    stream.write(f"ray: chaos: killed explorer-{i} after step {done} "
-                                 f"(ray.chaos_kill_explorer_every={chaos_every})\n")
-                    stream.flush()
+                chaos.after_step(done, last)
                 if metrics is not None:
                     logged_metrics = metrics
                 checkpoint_due = done % config.run.checkpoint_every == 0 or last
@@ -931,6 +932,7 @@ class RayDriver(Driver):
                         values["sfl/scoring_env_steps"] = float(run.sfl_scoring_steps)
                     buffer_size = service.buffer_size()  # one call to the service per log
                     extra = branch_text(run.branch_counts, buffer_size)
+                    values["ray/driver_refs"] = float(driver_refs(ray))
                     if asynchronous is not None:
                         values.update(asynchronous.stats.scalars(
                             len(workers.explorers), len(asynchronous.pending)))
@@ -964,7 +966,7 @@ class RayDriver(Driver):
             except (ray.exceptions.RayActorError, RunStopped):
                 placement_end = None
             record.update(placement_end=placement_end, steps=[start, stop],
-                          chaos_kills=chaos_kills, **schedule_fields())
+                          chaos_kills=chaos.kills, **schedule_fields())
         finally:
             writer.close()
             checkpoints.close()

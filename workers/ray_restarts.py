@@ -140,5 +140,39 @@ class RemoteService:
             hook()
 
 
-__all__ = ["MAX_CALL_FAILURES", "ActorDeaths", "RemoteService", "call_restarting",
+class Chaos:
+    """`ray.chaos_*`: kill the run's restartable actors on a schedule (every N steps and/or
+    every N seconds, the roles of `ray.chaos_roles` in turn), so that users can check their
+    own cluster the way the tests check this one. Never after the last step."""
+
+    def __init__(self, ray: Any, section: Any, actors: list[tuple[str, Any]],
+                 stream: TextIO | None):
+        roles = {r.strip() for r in section.chaos_roles.split(",")}
+        self.ray, self.stream = ray, stream
+        self.targets = [(name, actor) for name, actor in actors
+                        if name.split("-")[0] in roles]
+        self.every_steps, self.every_s = section.chaos_kill_every, section.chaos_kill_every_s
+        self.kills = 0
+        self.last_s = time.perf_counter()
+
+    def after_step(self, done: int, last: bool) -> None:
+        if last or not self.targets:
+            return
+        now = time.perf_counter()
+        if self.every_steps and done % self.every_steps == 0:
+            why = f"ray.chaos_kill_every={self.every_steps}"
+        elif self.every_s and now - self.last_s >= self.every_s:
+            why = f"ray.chaos_kill_every_s={self.every_s:g}"
+        else:
+            return
+        name, actor = self.targets[self.kills % len(self.targets)]
+        self.ray.kill(actor, no_restart=False)
+        self.kills += 1
+        self.last_s = now
+        if self.stream is not None:
+            self.stream.write(f"ray: chaos: killed {name} after step {done} ({why})\n")
+            self.stream.flush()
+
+
+__all__ = ["Chaos", "MAX_CALL_FAILURES", "ActorDeaths", "RemoteService", "call_restarting",
            "death_cause", "is_actor", "wait_restarted"]
