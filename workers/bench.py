@@ -31,6 +31,7 @@ import math
 import sys
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
@@ -323,6 +324,8 @@ class RestartResult:
     first_score_s: float  # of the fresh actor: start-up and compilation
     ready_s: float
     restarted_score_s: float
+    service_commits: int = 0  # logged commits the LevelService replayed on its restart
+    service_ready_s: float = 0.0  # from its kill until it answers with them restored
 
 
 def bench_restart(ray: Any, config: TrainConfig, compile_cache: bool,
@@ -345,7 +348,10 @@ def bench_restart(ray: Any, config: TrainConfig, compile_cache: bool,
             return ray.remote(cls).options(runtime_env={"env_vars": env}, **options
                                            ).remote(setting)
 
-        service = spawn(LevelServiceActor, num_cpus=0)
+        folder = tempfile.mkdtemp(prefix="tabx-restart-levels-", dir=cache)
+        service = ray.remote(LevelServiceActor).options(
+            runtime_env={"env_vars": env}, num_cpus=0, max_restarts=-1, max_task_retries=0
+        ).remote(setting, folder, "bench")
         explorer = spawn(ExplorerActor, num_cpus=1, max_restarts=-1, max_task_retries=0)
         try:
             ppo = learner_for(setting)
@@ -360,27 +366,45 @@ def bench_restart(ray: Any, config: TrainConfig, compile_cache: bool,
 
             ray.get(explorer.ready.remote())
             first = score()
-            old_pid = ray.get(explorer.pid.remote())
-            killed = time.perf_counter()
-            ray.kill(explorer, no_restart=False)
-            # The kill is asynchronous: the old process may still answer; wait for a new one.
-            while time.perf_counter() - killed < 300:
-                try:
-                    if ray.get(explorer.pid.remote(), timeout=300) != old_pid:
-                        break
-                except ray.exceptions.RayActorError:
-                    time.sleep(0.05)
-            ready = time.perf_counter() - killed
-            score()
-            restarted = time.perf_counter() - killed
+            ready, restarted = _time_restart(ray, explorer, score)
+            # The service: a snapshot interval's worth of commits in its log, then a kill.
+            n = config.learner.num_envs
+            commits = 50
+            for i in range(commits):
+                batch = service.fresh.remote(jax.random.key(100 + i), n)
+                ray.get(service.apply.remote(i + 1, "insert", batch, np.arange(n, dtype=float),
+                                             np.ones(n), 0))
+            size = ray.get(service.buffer_size.remote())
+            service_ready, _ = _time_restart(ray, service, lambda: None)
+            if ray.get(service.buffer_size.remote()) != size:
+                raise RuntimeError("the restarted level service lost commits")
         finally:
             for actor in (service, explorer):
                 ray.kill(actor)
-    stream.write(f"  restart, compilation cache {'on' if compile_cache else 'off'}: back in "
-                 f"{ready:.1f} s, first batch scored {restarted:.1f} s after the kill (a fresh "
-                 f"actor's first batch: {first:.1f} s)\n")
+    stream.write(f"  restart, compilation cache {'on' if compile_cache else 'off'}: Explorer "
+                 f"back in {ready:.1f} s, first batch scored {restarted:.1f} s after the kill "
+                 f"(a fresh actor's first batch: {first:.1f} s); LevelService back with "
+                 f"{commits} commits replayed in {service_ready:.1f} s\n")
     stream.flush()
-    return RestartResult(compile_cache, first, ready, restarted)
+    return RestartResult(compile_cache, first, ready, restarted, commits, service_ready)
+
+
+def _time_restart(ray: Any, actor: Any, then: Callable[[], Any]) -> tuple[float, float]:
+    """Kill `actor`'s process (`ray.kill`, restart allowed); seconds from the kill until a
+    new process answers, and until `then()` (its first work) is done."""
+    old_pid = ray.get(actor.pid.remote())
+    killed = time.perf_counter()
+    ray.kill(actor, no_restart=False)
+    # The kill is asynchronous: the old process may still answer; wait for a new one.
+    while time.perf_counter() - killed < 300:
+        try:
+            if ray.get(actor.pid.remote(), timeout=300) != old_pid:
+                break
+        except ray.exceptions.RayActorError:
+            time.sleep(0.05)
+    ready = time.perf_counter() - killed
+    then()
+    return ready, time.perf_counter() - killed
 
 
 def ray_overhead(results: list[UEDBenchResult]) -> float | None:
@@ -458,7 +482,8 @@ def bench_ued(args: argparse.Namespace) -> int:
         print(f"Explorer restart, compilation cache {'on ' if r.compile_cache else 'off'}: "
               f"answers {r.ready_s:.1f} s after the kill, scores again after "
               f"{r.restarted_score_s:.1f} s (a fresh actor's first batch: "
-              f"{r.first_score_s:.1f} s)")
+              f"{r.first_score_s:.1f} s); LevelService restart with {r.service_commits} "
+              f"logged commits: {r.service_ready_s:.1f} s")
     if args.json:
         lines = [json.dumps(r.to_json()) for r in results]
         lines += [json.dumps({"driver": "restart", **dataclasses.asdict(r)})
@@ -484,7 +509,8 @@ def add_ued_bench(which: argparse._SubParsersAction) -> None:
                    help="timed curriculum steps per setting (default 16)")
     p.add_argument("--no-local", action="store_true", help="skip the local driver")
     p.add_argument("--restart", action="store_true",
-                   help="also time an Explorer's restart after a kill, without and with the "
+                   help="also time the restart of an Explorer and of the LevelService (with "
+                        "50 logged commits to replay) after a kill, without and with the "
                         "compilation cache")
     p.add_argument("--address", help="join a running Ray cluster (auto, or HOST:PORT)")
     p.add_argument("--json", help="also write results as JSON lines to this file")
