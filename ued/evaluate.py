@@ -179,9 +179,10 @@ def describe(side: Side) -> str:
 
 
 def format_result(result: EvalResult, sides: tuple[Side, Side], scenario: str,
-                  greedy: bool) -> str:
+                  greedy: bool, profile: str | None = None) -> str:
     lines = [f"scenario {scenario}: {result.episodes} episodes, "
-             f"{'greedy' if greedy else 'sampled'} policies"]
+             f"{'greedy' if greedy else 'sampled'} policies"
+             + (f", profile {profile}" if profile else "")]
     for team, side in enumerate(sides):
         rate, low, high = result.win_rate(team)
         ret, ret_ci = result.mean_return(team)
