@@ -119,3 +119,30 @@ def test_rollout_takes_a_profile(capsys):
     with pytest.raises(SystemExit):
         main(["rollout", "cross", "--profile", "paper"])
     assert "invalid choice: 'paper'" in capsys.readouterr().err
+
+
+def test_eval_takes_a_profile(capsys):
+    from tabx_ued.cli import main
+
+    argv = ["eval", "--ally", "heuristic:expert", "--enemy", "heuristic:random", "--scenario",
+            "crossfire", "--episodes", "2", "--max-steps", "8"]
+    assert main([*argv, "--profile", "reference"]) == 0
+    assert "profile reference" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_expert_against_random_kings_on_crossfire_depends_on_the_profile():
+    """In the reference the random tier never attacks: expert allies win by the time limit
+    almost always.
+    In ours random kings attack, and the expert team is wiped out."""
+    from tabx.scenarios import config_for, load_named
+    from tabx.tournament import tier_table
+
+    scenario = load_named("crossfire")
+    config = config_for([scenario])
+    tables = {p: tier_table(config, scenario.to_level(config), episodes=8, seed=0,
+                            ally_tiers=("expert",), enemy_tiers=("random",), profile=p)
+              for p in ("tabx-ued", "reference")}
+    reference = tables["reference"]
+    assert reference.win_rate[0, 0] >= 0.75 and reference.timeout[0, 0] == 1.0
+    assert tables["tabx-ued"].eliminated[0, 0, 0] >= 0.75
