@@ -3,8 +3,8 @@ the `reference` profile restores; here each one gets a small scenario where the 
 matters, played with the choice off (ours) and on (the reference's), and asserted both ways.
 
 All scenarios run in ONE compiled call: a batch of (case, off/on) levels, each playing
-`STEPS` steps with the scripted policy on the allies and given actions (idle unless the case
-says otherwise) on the enemies. Slots: allies 0-2, enemies 3-5 (tests/envtools.py).
+`STEPS` steps with the scripted policy on the allies while the enemies stand still (idle).
+Slots: allies 0-2, enemies 3-5 (tests/envtools.py).
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import jax
@@ -67,7 +67,6 @@ class Case:
     toggle: int | None
     base: int = 0
     prepare: Callable[[EnvState], EnvState] | None = None
-    enemy_actions: dict[int, int] = field(default_factory=dict)  # slot -> action every step
 
 
 def _epsilon_moves() -> Case:
@@ -247,23 +246,24 @@ def doc_rows() -> dict[str, str]:
 
 
 @jax.jit
-def _play(levels: EnvParams, states: EnvState, enemy: jax.Array, key: jax.Array):
+def _play(levels: EnvParams, states: EnvState, key: jax.Array):
+    idle = jnp.full(N, C.IDLE, jnp.int32)
 
-    def one(lv, state, external):
+    def one(lv, state):
         def body(state, k):
-            actions, decided = controlled_actions(k, state, lv, external, CONTROLLERS)
+            actions, decided = controlled_actions(k, state, lv, idle, CONTROLLERS)
             _, after, _, _, _ = ENV.step(k, decided, actions, lv)
             return after, (actions, decided, after)
 
         return jax.lax.scan(body, state, jax.random.split(key, STEPS))[1]
 
-    return jax.vmap(one)(levels, states, enemy)
+    return jax.vmap(one)(levels, states)
 
 
 @pytest.fixture(scope="module")
 def traces() -> dict[str, tuple[Trace, Trace]]:
     cases = {name: make() for name, make in CASES.items()}
-    levels, states, enemy = [], [], []
+    levels, states = [], []
     initial = jax.jit(ENV.initial_state)
     for case in cases.values():
         for on in (False, True):
@@ -275,12 +275,7 @@ def traces() -> dict[str, tuple[Trace, Trace]]:
             state = initial(lv)
             states.append(case.prepare(state) if case.prepare else state)
             levels.append(lv)
-            actions = np.full(N, C.IDLE, np.int32)
-            for slot, action in case.enemy_actions.items():
-                actions[slot] = action
-            enemy.append(actions)
-    out = jax.device_get(_play(stack_levels(levels), stack_levels(states),
-                               jnp.asarray(np.stack(enemy)), KEY))
+    out = jax.device_get(_play(stack_levels(levels), stack_levels(states), KEY))
     result = {}
     for i, name in enumerate(cases):
         pair = [Trace(*(jax.tree.map(lambda x, j=2 * i + k: np.asarray(x[j]), part)
