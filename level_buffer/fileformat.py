@@ -20,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+from collections.abc import Mapping
 from typing import Any
 
 import msgpack
@@ -52,6 +53,21 @@ def make_rng(state: dict[str, Any]) -> np.random.Generator:
     bit_gen = getattr(np.random, name)()
     bit_gen.state = state
     return np.random.Generator(bit_gen)
+
+
+def _with_defaults(stored: LevelSpec, template: LevelSpec, defaults: Mapping[str, Any]
+                   ) -> tuple[LevelSpec, list[tuple[tuple[int, ...], np.dtype, Any]]]:
+    """`stored` plus the template's leaves it lacks that have a default, and (shape, dtype,
+    value) of each leaf added, in order."""
+    paths, shapes, dtypes = list(stored.paths), list(stored.shapes), list(stored.dtypes)
+    added = []
+    for p, shape, dtype in zip(template.paths, template.shapes, template.dtypes, strict=True):
+        if p not in stored.paths and p in defaults:
+            paths.append(p)
+            shapes.append(shape)
+            dtypes.append(dtype)
+            added.append((shape, dtype, defaults[p]))
+    return LevelSpec(tuple(paths), tuple(shapes), tuple(dtypes)), added
 
 
 def _le(arr: np.ndarray) -> bytes:
@@ -141,12 +157,18 @@ def read_header(data: bytes, name: str) -> tuple[dict[str, Any], bytes]:
     return header, payload
 
 
-def decode(data: bytes, name: str, template_level: Any = None) -> Any:
-    """A validated `BufferState` from file bytes; BufferFileError(name, ...) on any problem."""
+def decode(data: bytes, name: str, template_level: Any = None,
+           defaults: Mapping[str, Any] | None = None) -> Any:
+    """A validated `BufferState` from file bytes; BufferFileError(name, ...) on any problem.
+    `defaults` ({key path: value}) fills the template's leaves that the file lacks (a file
+    written before the level type gained them), every level with that value."""
     header, payload_bytes = read_header(data, name)
     try:
-        spec = LevelSpec.from_header(_get(header, "leaves", list, "header"))
+        file_spec = LevelSpec.from_header(_get(header, "leaves", list, "header"))
+        spec, added = file_spec, []
         if template_level is not None:
+            spec, added = _with_defaults(file_spec, LevelSpec.from_template(template_level),
+                                         defaults or {})
             try:
                 spec = spec.with_template(template_level)
             except ValueError as err:
@@ -169,12 +191,13 @@ def decode(data: bytes, name: str, template_level: Any = None) -> Any:
 
         payload = msgpack.unpackb(payload_bytes, raw=False)
         raw_levels = _get(payload, "levels", list, "payload")
-        if len(raw_levels) != len(spec.paths):
+        if len(raw_levels) != len(file_spec.paths):
             raise ValueError(f"payload has {len(raw_levels)} level leaves, header "
-                             f"{len(spec.paths)}")
+                             f"{len(file_spec.paths)}")
         levels = [_array(b, d, (size, *s), f"level leaf {p!r}")
-                  for b, p, s, d in zip(raw_levels, spec.paths, spec.shapes, spec.dtypes,
-                                        strict=True)]
+                  for b, p, s, d in zip(raw_levels, file_spec.paths, file_spec.shapes,
+                                        file_spec.dtypes, strict=True)]
+        levels += [np.full((size, *s), v, d) for s, d, v in added]
         raw_slots = _get(payload, "slots", dict, "payload")
         slots = {}
         for k, (dtype, _) in SLOT_FIELDS.items():

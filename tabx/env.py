@@ -1,6 +1,7 @@
 """`TabxEnv`: the TABX battle as pure functions over (EnvState, EnvParams), array API.
 
-One step, in order (TABX_REFERENCE.md section 4, with the fixes listed in docs/differences.md):
+One step, in order (TABX_REFERENCE.md section 4, with the differences listed in
+docs/differences.md; the level's profile (`tabx.profiles`) restores the reference's choices):
 1. motion: Euler with the velocity set by the previous action, wall damage and clipping,
    one simultaneous collision pass, clipping again;
 2. actions of every unit slot: moves set the next velocity, turns rotate now, ATTACK hits the
@@ -26,6 +27,7 @@ from tabx.geometry import facing, field_of_view, in_ellipses, pairwise_offsets, 
 from tabx.observe import action_mask, cooldown_ready, observe, pick_legal, world_state
 from tabx.params import EnvConfig, EnvParams
 from tabx.physics import integrate, resolve_collisions, wall_contact
+from tabx.profiles import CORPSE_DRIFT, CORPSE_VISION, reference_choice
 from tabx.reward import dense_reward, team_hp_ratio, winner_mask
 from tabx.rng import random_words, to_unit_float
 from tabx.selection import materialise
@@ -187,9 +189,10 @@ class TabxEnv:
         health = jnp.clip(state.health - wall_loss - attack_loss - lava_loss, 0.0, u.max_health)
         health = jnp.where(able, health, state.health)
         alive = able & (health > 0)
-        # A unit that dies this step does not drift on with the move it chose (the reference's
-        # corpse moves once more).
-        velocity = jnp.where(alive[:, None], velocity, 0.0)
+        # A unit that dies this step does not drift on with the move it chose; the reference's
+        # corpse moves once more (profile choice CORPSE_DRIFT).
+        drifts = alive | (able & reference_choice(params, CORPSE_DRIFT))
+        velocity = jnp.where(drifts[:, None], velocity, 0.0)
 
         # 6. Outcome.
         active = u.active.astype(bool)
@@ -236,7 +239,10 @@ class TabxEnv:
         fov = field_of_view(rel, trig, u.radius) & active[None, :]
         attackable = attackable_pairs(rel, trig, u.radius, u.attack_range, u.team,
                                       u.heals.astype(bool), alive)
-        hidden = bush_hidden(inside, z.zone_type, u.team, state.alive, interacted)  # (2, N)
+        # Who shares what it sees in a bush: the living; in the reference also the dead
+        # (profile choice CORPSE_VISION).
+        sharing = jnp.where(reference_choice(params, CORPSE_VISION), active, state.alive)
+        hidden = bush_hidden(inside, z.zone_type, u.team, sharing, interacted)  # (2, N)
         # The pairwise tests and the bush rule computed once, packed as small integers in one
         # (N + 2, N) matrix: XLA would otherwise re-derive them inside each of visible,
         # attackable, target and has_target (and the auto-reset select of each).

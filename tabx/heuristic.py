@@ -23,18 +23,24 @@ Pipeline per unit:
 4. epsilon override: with probability epsilon, a uniformly random legal action.
 
 Differences from the reference code (docs/differences.md): the turn prediction uses the real
-sight angle and target radius; the search rotation is stochastic (paper) not always right;
-kiting measures the distance to the threatening unit itself; the epsilon draw and the random
-action use independent randomness and the random action is any legal one; memory is forgotten
-when the spot is reached within one move, or a corpse lies there.
+sight angle and target radius, and a turn is only chosen when a whole turn step faces the
+target better; the search rotation is stochastic (paper) not always right; kiting measures the
+distance to the threatening unit itself; the epsilon draw and the random action use independent
+randomness and the random action is any legal one; memory is forgotten when the spot is reached
+within one move, or a corpse lies there; "in a bush" is the bush's ellipse; the assassin role
+reads the unit's base speed. The level's profile (`tabx.profiles`) restores the reference's
+choice for each of these, one select each.
 """
 
 from __future__ import annotations
+
+import functools
 
 import jax
 import jax.numpy as jnp
 
 from tabx import constants as C
+from tabx import profiles
 from tabx.geometry import atan2, in_ellipses, pairwise_offsets, sincos
 from tabx.observe import action_mask, cooldown_ready, pick_legal
 from tabx.params import EnvParams
@@ -69,10 +75,13 @@ def _turn_toward(angle: jax.Array) -> jax.Array:
     return jnp.where(angle > 0, C.TURN_LEFT, C.TURN_RIGHT).astype(jnp.int32)
 
 
-def unit_roles(params: EnvParams) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """(assassin, ranger, healer) bool (N,) from unit stats and each team's thresholds."""
+def unit_roles(params: EnvParams, speed: jax.Array | None = None
+               ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """(assassin, ranger, healer) bool (N,) from unit stats and each team's thresholds; the
+    assassin test reads `speed` (default: the base speed)."""
     u, h = params.units, params.heuristic
-    assassin = u.speed >= _per_team(h.assassin_speed, u.team)
+    speed = u.speed if speed is None else speed
+    assassin = speed >= _per_team(h.assassin_speed, u.team)
     ranger = u.attack_range >= _per_team(h.ranger_attack_range, u.team)
     return assassin, ranger, u.heals.astype(bool)
 
@@ -101,7 +110,10 @@ def heuristic_actions_from_bits(bits: jax.Array, state: EnvState, params: EnvPar
     n = u.team.shape[0]
     team = u.team
     position = state.position
-    assassin, ranger, healer = unit_roles(params)
+    reference = functools.partial(profiles.reference_choice, params)
+    # The reference reads the observed, swamp-slowed speed: an assassin in a swamp loses its role.
+    assassin, ranger, healer = unit_roles(
+        params, jnp.where(reference(profiles.ASSASSIN_CURRENT_SPEED), state.speed, u.speed))
     epsilon = _per_team(h.epsilon, team)
     threshold = jnp.where(healer, _per_team(h.healer_aggressive_threshold, team),
                           _per_team(h.aggressive_threshold, team))
@@ -124,7 +136,8 @@ def heuristic_actions_from_bits(bits: jax.Array, state: EnvState, params: EnvPar
     side = jnp.where(assassin, -1.0, jnp.where(healer, 0.0, 1.0))
     reach = (u.radius[None, :] + u.radius[:, None]) * side[:, None]  # (N, N)
     move_point = rel + state.facing[None, :, :] * reach[..., None]
-    _, chosen, _ = row_argmin(jnp.sum(move_point**2, -1), choosable)  # one-hot (N, N)
+    move_dist2 = jnp.sum(move_point**2, -1)
+    _, chosen, _ = row_argmin(move_dist2, choosable)  # one-hot (N, N)
     # Everything read at the chosen target in one row selection (one reduction, not four).
     picked = pick_row(jnp.concatenate(
         [move_point, rel, jnp.broadcast_to(u.radius[None, :, None], (n, n, 1)),
@@ -146,28 +159,46 @@ def heuristic_actions_from_bits(bits: jax.Array, state: EnvState, params: EnvPar
     sin_k, cos_k = sincos(turns * step_angle)
     local_x = cos_k * target_x + sin_k * target_y  # in the frame after those turns
     local_y = -sin_k * target_x + cos_k * target_y
-    x0 = u.radius * state.half_sight[:, 0]
+    # The reference predicts with the sight angle as the observation stores it (angle / 2 pi)
+    # and its own radius for the target's (a tenth of it squared for melee units).
+    reference_turn = reference(profiles.TURN_PREDICTION)
+    sight_sin, sight_cos = sincos(u.sight_angle / (4.0 * jnp.pi))
+    half_cos = jnp.where(reference_turn, sight_cos, state.half_sight[:, 0])
+    half_sin = jnp.where(reference_turn, sight_sin, state.half_sight[:, 1])
+    reach2 = jnp.where(reference_turn, jnp.where(ranger, 1.0, 0.1) * u.radius**2,
+                       target_radius**2)
+    x0 = u.radius * half_cos
     gap_x = jnp.maximum(jnp.maximum(x0 - local_x, local_x - (x0 + u.attack_range)), 0.0)
-    gap_y = jnp.maximum(jnp.abs(local_y) - u.radius * state.half_sight[:, 1], 0.0)
-    would_hit = gap_x**2 + gap_y**2 < target_radius**2
-    rotate = has_target & ~target_attackable & would_hit & (turns != 0)
+    gap_y = jnp.maximum(jnp.abs(local_y) - u.radius * half_sin, 0.0)
+    would_hit = gap_x**2 + gap_y**2 < reach2
+    # No whole turn step faces the target better: the heading stays (the reference turns).
+    turning = (turns != 0) | reference(profiles.TURN_IN_PLACE)
+    rotate = has_target & ~target_attackable & would_hit & turning
 
-    # 3c. Kite: a ranger retreats from the nearest candidate inside range x threshold.
-    dist2 = jnp.sum(rel * rel, -1)
+    # 3c. Kite: a ranger retreats from the nearest candidate inside range x threshold. The
+    # reference measures the distance to each candidate's move point and steps back along the
+    # axis of the move toward its target's.
+    reference_kite = reference(profiles.KITE_MOVE_POINT)
+    dist2 = jnp.where(reference_kite, move_dist2, jnp.sum(rel * rel, -1))
     _, threat, threatened = row_argmin(dist2, candidates)
     threat_at = pick_row(jnp.concatenate([dist2[..., None], rel], -1), threat)  # (N, 3)
     kite = ranger & threatened & (threat_at[:, 0] < (u.attack_range * threshold) ** 2)
-    kite_move = _toward(-threat_at[:, 1:])
+    kite_move = _toward(-jnp.where(reference_kite, target_move, threat_at[:, 1:]))
 
     # 3d-e. Pursue the remembered spot: face it, then move to it. The memory is forgotten once
-    # the unit is within one move of the spot on both axes, or a visible corpse lies on it.
+    # the unit is within one move of the spot on both axes, or a visible corpse lies on it. The
+    # reference's radius is sqrt(2) dt whatever the speed, and it still pursues on the step the
+    # memory is forgotten.
+    reference_memory = reference(profiles.MEMORY_REACH)
     memory_rel = state.memory_position - position
-    step_len = u.speed * params.physics.dt
+    step_len = jnp.where(reference_memory, 1.0, u.speed) * params.physics.dt
     reached = jnp.sum(memory_rel**2, -1) < 2.0 * step_len**2
     corpse = state.visible & (u.active.astype(bool) & ~state.alive)[None, :]
     to_spot = position[None, :, :] - state.memory_position[:, None, :]  # (N, N, 2)
     on_spot = jnp.sum(to_spot**2, -1) <= jnp.square(u.radius)[None, :]
-    keep_memory = state.memory_valid & ~reached & ~jnp.any(corpse & on_spot, -1)
+    forget = reached | jnp.any(corpse & on_spot, -1)
+    keep_memory = state.memory_valid & ~forget
+    pursuing = jnp.where(reference_memory, state.memory_valid, keep_memory)
     memory_angle = atan2(*_in_frame(memory_rel, state.facing)[::-1])
     pursue = jnp.where(jnp.abs(memory_angle) <= step_angle, _toward(memory_rel),
                        _turn_toward(memory_angle))
@@ -178,10 +209,15 @@ def heuristic_actions_from_bits(bits: jax.Array, state: EnvState, params: EnvPar
         bush_rel = z.centre[None, :, :] - position[:, None, :]  # (N, Z, 2)
         _, nearest_bush, _ = row_argmin(jnp.sum(bush_rel**2, -1),
                                         jnp.broadcast_to(bush[None, :], (n, bush.shape[0])))
-        in_bush = jnp.any(in_ellipses(position, z.centre, z.semi_axes, z.zone_type)
-                          & bush[None, :], -1)
+        nearest = pick_row(jnp.concatenate(
+            [bush_rel, jnp.broadcast_to(z.semi_axes[None], bush_rel.shape)], -1), nearest_bush)
+        in_bush = jnp.where(
+            reference(profiles.BUSH_BOX),  # the reference: the nearest bush's bounding box
+            jnp.all(jnp.abs(nearest[:, :2]) < nearest[:, 2:], -1),
+            jnp.any(in_ellipses(position, z.centre, z.semi_axes, z.zone_type) & bush[None, :],
+                    -1))
         seek_bush = ranger & jnp.any(bush) & ~in_bush
-        bush_move = _toward(pick_row(bush_rel, nearest_bush))
+        bush_move = _toward(nearest[:, :2])
     else:
         seek_bush, bush_move = jnp.zeros(n, bool), jnp.zeros(n, jnp.int32)
 
@@ -190,25 +226,32 @@ def heuristic_actions_from_bits(bits: jax.Array, state: EnvState, params: EnvPar
     draw_epsilon = (bits >> 20).astype(jnp.float32) / 4096.0
     draw_action = ((bits >> 10) & 0x3FF).astype(jnp.float32) / 1024.0
     draw_reverse = (bits & 0x3FF).astype(jnp.float32) / 1024.0
-    reverse = draw_reverse < SEARCH_REVERSE_PROB
+    reverse = (draw_reverse < SEARCH_REVERSE_PROB) & ~reference(profiles.SEARCH_RIGHT)
     search_turn = jnp.where(reverse, C.TURN_LEFT + C.TURN_RIGHT - state.search_turn,
                             state.search_turn).astype(jnp.int32)
 
     action = search_turn
     action = jnp.where(seek_bush, bush_move, action)
-    action = jnp.where(keep_memory, pursue, action)
+    action = jnp.where(pursuing, pursue, action)
     action = jnp.where(has_target, _toward(target_move), action)
     action = jnp.where(has_target & kite, kite_move, action)
     action = jnp.where(rotate, _turn_toward(angle), action)
     action = jnp.where(attack, C.ATTACK, action)
 
-    # 4. Epsilon override with a uniform legal action; the dead and padding idle.
+    # 4. Epsilon override with a uniform legal action (the reference: one of the 6 moves and
+    # turns, never ATTACK or IDLE); the dead and padding idle.
     mask = action_mask(state, params)
-    action = jnp.where(draw_epsilon < epsilon, pick_legal(draw_action, mask), action)
+    move_or_turn = jnp.minimum(jnp.floor(draw_action * 6.0), 5.0).astype(jnp.int32)
+    move_or_turn = move_or_turn + (move_or_turn >= C.ATTACK)  # 0-3 moves, 5-6 turns
+    random_action = jnp.where(reference(profiles.EPSILON_MOVES), move_or_turn,
+                              pick_legal(draw_action, mask))
+    action = jnp.where(draw_epsilon < epsilon, random_action, action)
     action = jnp.where(state.alive, action, C.IDLE).astype(jnp.int32)
 
-    # Memory: the chosen target's position while it is seen.
-    memory_valid = has_target | keep_memory
+    # Memory: the chosen target's position while it is seen (the reference forgets a reached
+    # spot even then, and remembers the new one from the next sighting).
+    memory_valid = jnp.where(reference_memory, (has_target | state.memory_valid) & ~forget,
+                             has_target | keep_memory)
     memory_position = jnp.where(has_target[:, None], position + target_rel,
                                 state.memory_position)
     memory_valid = memory_valid & state.alive

@@ -129,6 +129,11 @@ class EnvParams:
     heuristic: HeuristicParams
     physics: PhysicsParams
     reward_mode: jax.Array  # int32 scalar: constants.REWARD_MEAN_OF_RATIOS or RATIO_OF_SUMS
+    profile: jax.Array  # int32 scalar: reference behaviours played, one bit each (tabx.profiles)
+
+
+# Leaves a level file written before they existed lacks, and the value such a file means.
+LEAF_DEFAULTS: dict[str, Any] = {"profile": np.int32(0)}
 
 
 # --- defaults --------------------------------------------------------------------------------
@@ -284,6 +289,7 @@ def make_level(
         heuristic=heuristic if heuristic is not None else heuristic_params(),
         physics=physics if physics is not None else physics_params(),
         reward_mode=jnp.asarray(reward_mode, jnp.int32),
+        profile=jnp.zeros((), jnp.int32),
     )
 
 

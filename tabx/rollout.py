@@ -21,6 +21,7 @@ from tabx.controllers import Controller, controlled_actions, with_tiers
 from tabx.env import TabxEnv
 from tabx.jit_options import simulator_jit
 from tabx.params import EnvConfig, EnvParams
+from tabx.profiles import DEFAULT_PROFILE, add_profile_argument, with_profile
 from tabx.state import EnvState
 
 DEFAULT_CONTROLLERS = (Controller("random"), Controller("heuristic", "medium"))
@@ -117,13 +118,14 @@ def cmd_rollout(args: argparse.Namespace) -> int:
     if args.gif is not None and not args.gif.endswith(".gif"):
         raise UserError(f"--gif: expected a file name ending in .gif, got {args.gif!r}")
     config = config_for([scenario], max_steps=args.max_steps)
-    level = with_tiers(scenario.to_level(config), controllers)
+    profile = args.profile or DEFAULT_PROFILE
+    level = with_profile(with_tiers(scenario.to_level(config), controllers), profile)
     t0 = time.perf_counter()
     result = run_episode(config, level, args.steps, args.seed, controllers)
     elapsed = time.perf_counter() - t0
     print(f"scenario {scenario.name}: {len(scenario.allies)} allies v {len(scenario.enemies)} "
           f"enemies, {len(scenario.zones)} zones; allies {controllers[0]}, enemies "
-          f"{controllers[1]}, seed {args.seed}")
+          f"{controllers[1]}, seed {args.seed}, profile {profile}")
     for name, team in zip(("allies", "enemies"), result["teams"], strict=True):
         print(f"  {name:8s} alive {team['alive']}/{team['units']}  health "
               f"{team['health']:.0f}/{team['max_health']:.0f} (ratio {team['hp_ratio']:.3f})  "
@@ -169,6 +171,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                    help="enemy controller (default heuristic:medium)")
     p.add_argument("--gif", metavar="OUT.gif", help="render the episode to a GIF")
     p.add_argument("--fps", type=float, default=10.0, help="GIF frames per second (default 10)")
+    add_profile_argument(p)
     p.set_defaults(func=cmd_rollout)
 
 

@@ -1,10 +1,14 @@
-"""Heuristic tier tournaments: `tabx eval heuristics NAME`, a tier-vs-tier win-rate table.
+"""Heuristic tier tournaments: `tabx eval heuristics NAME`, tier-vs-tier tables.
 
 Row tier plays the allies, column tier the enemies, both with the scripted policy; each cell is
-`episodes` full episodes on the scenario. The tiers are data in the level, so the whole table
-runs through one compiled function: each row is one batch of (columns x episodes) envs stepped
-until every episode has ended (a `lax.while_loop`, so short battles finish early).
+`episodes` full episodes on the scenario. The tiers and the behaviour profile are data in the
+level, so the whole table runs through one compiled function: each row is one batch of
+(columns x episodes) envs stepped until every episode has ended (a `lax.while_loop`, so short
+battles finish early).
 
+Per matchup: the allies' win rate with a 95 % Wilson interval, the fraction of time-outs, the
+mean episode length, the mean team health ratios at the end (the level's formula), the mean
+step of the first death and which team suffered it, and how often each team was eliminated.
 A draw (time limit with equal team health ratios) counts as an enemy win, as in the reward's
 tie-break; the table reports ally wins, so the diagonal of a mirror scenario sits a little
 below one half when draws happen.
@@ -26,50 +30,79 @@ import numpy as np
 from tabx import constants as C
 from tabx.controllers import Controller, controlled_actions
 from tabx.env import TabxEnv
+from tabx.intervals import wilson
 from tabx.jit_options import simulator_jit
 from tabx.params import HEURISTIC_TIERS, EnvConfig, EnvParams, heuristic_params, stack_levels
+from tabx.profiles import DEFAULT_PROFILE, add_profile_argument, with_profile
 
 BOTH_HEURISTIC = (Controller("heuristic"), Controller("heuristic"))
+# Per-episode outcomes a batch run returns, in order (`make_batch_runner`).
+OUTCOMES = ("ally_won", "length", "ally_return", "timeout", "hp_ratio", "first_death",
+            "first_dead", "eliminated")
 
 
 @dataclass
 class TierTable:
-    """Results per (ally tier, enemy tier): win rate of the allies, mean episode length and
-    mean ally return."""
+    """Results per (ally tier, enemy tier), each array (A, E) or (A, E, 2) per team."""
 
     ally_tiers: list[str]
     enemy_tiers: list[str]
     episodes: int
-    win_rate: np.ndarray  # (A, E)
-    length: np.ndarray  # (A, E)
-    ally_return: np.ndarray  # (A, E)
+    win_rate: np.ndarray  # allies' wins / episodes
+    length: np.ndarray  # mean episode length (steps)
+    ally_return: np.ndarray  # mean undiscounted ally return
+    timeout: np.ndarray  # fraction of episodes ended by the time limit
+    hp_ratio: np.ndarray  # (A, E, 2) mean team health ratio at the end
+    first_death: np.ndarray  # mean step of the first death (NaN: nobody died)
+    first_dead: np.ndarray  # (A, E, 2) fraction of episodes whose first death was the
+    #                         team's (both teams' on a simultaneous first death)
+    eliminated: np.ndarray  # (A, E, 2) fraction of episodes the team was wiped out
+    profile: str = DEFAULT_PROFILE
 
-    def ci95(self) -> np.ndarray:
-        """Half-width of the normal 95% interval of each win rate."""
-        p = self.win_rate
-        return 1.96 * np.sqrt(p * (1 - p) / self.episodes)
+    def win_interval(self) -> np.ndarray:
+        """(A, E, 2) low and high ends of each win rate's 95 % Wilson interval."""
+        wins = np.rint(self.win_rate * self.episodes).astype(int)
+        return np.array([[wilson(int(w), self.episodes)[1:] for w in row] for row in wins])
 
     def to_json(self) -> dict:
-        return dict(ally_tiers=self.ally_tiers, enemy_tiers=self.enemy_tiers,
-                    episodes=self.episodes, win_rate=self.win_rate.tolist(),
-                    ci95=self.ci95().tolist(), length=self.length.tolist(),
-                    ally_return=self.ally_return.tolist())
+        out = dict(ally_tiers=self.ally_tiers, enemy_tiers=self.enemy_tiers,
+                   episodes=self.episodes, profile=self.profile)
+        out["win_rate"] = self.win_rate.tolist()
+        out["win_interval"] = self.win_interval().tolist()
+        for name in ("timeout", "length", "ally_return", "hp_ratio", "first_death",
+                     "first_dead", "eliminated"):
+            value = np.asarray(getattr(self, name), np.float64)  # NaN (nobody died) as null
+            out[name] = np.where(np.isnan(value), None, value).tolist()
+        return out
 
     def format(self) -> str:
-        width = max(9, *(len(t) for t in self.enemy_tiers)) + 2
+        """The win-rate matrix, then one line per matchup with the other outcomes."""
+        width = max(18, *(len(t) + 2 for t in self.enemy_tiers))
         lines = ["ally \\ enemy".ljust(12) + "".join(t.rjust(width) for t in self.enemy_tiers)]
-        ci = self.ci95()
+        ci = self.win_interval()
         for i, tier in enumerate(self.ally_tiers):
-            cells = [f"{self.win_rate[i, j]:.2f}±{ci[i, j]:.2f}".rjust(width)
-                     for j in range(len(self.enemy_tiers))]
+            cells = [f"{self.win_rate[i, j]:.2f} [{ci[i, j, 0]:.2f}, {ci[i, j, 1]:.2f}]"
+                     .rjust(width) for j in range(len(self.enemy_tiers))]
             lines.append(tier.ljust(12) + "".join(cells))
+        lines += ["", "ally      enemy      win   timeout  length  hp ally  hp enemy  "
+                      "1st death  ally 1st  ally elim  enemy elim"]
+        for i, ally in enumerate(self.ally_tiers):
+            for j, enemy in enumerate(self.enemy_tiers):
+                death = ("-" if np.isnan(self.first_death[i, j])
+                         else f"{self.first_death[i, j]:.0f}")
+                lines.append(
+                    f"{ally:9s} {enemy:9s} {self.win_rate[i, j]:5.2f} "
+                    f"{self.timeout[i, j]:8.2f} {self.length[i, j]:7.0f} "
+                    f"{self.hp_ratio[i, j, 0]:8.2f} {self.hp_ratio[i, j, 1]:9.2f} "
+                    f"{death:>10s} {self.first_dead[i, j, 0]:9.2f} "
+                    f"{self.eliminated[i, j, 0]:10.2f} {self.eliminated[i, j, 1]:11.2f}")
         return "\n".join(lines)
 
 
 @functools.lru_cache(maxsize=8)
 def make_batch_runner(config: EnvConfig):
-    """A jitted `run(levels, keys) -> (ally_won, length, ally_return)` over a batch of envs,
-    each playing one episode with the heuristic on both teams until all have ended."""
+    """A jitted `run(levels, keys) -> dict of per-episode OUTCOMES` over a batch of envs, each
+    playing one episode with the heuristic on both teams until all have ended."""
     env = TabxEnv(config)
 
     def act(key, state, level):
@@ -77,23 +110,39 @@ def make_batch_runner(config: EnvConfig):
         _, state, reward, _, _ = env.step(key, state, actions, level)
         return state, reward
 
+    def dead_per_team(states, levels):
+        u = levels.units
+        dead = u.active & ~states.alive  # (B, N)
+        return jnp.stack([jnp.sum(dead & (u.team == t), -1) for t in range(C.NUM_TEAMS)], -1)
+
     def run(levels: EnvParams, keys: jax.Array):
         states = jax.vmap(env.initial_state)(levels)
         batch = keys.shape[0]
 
         def cond(carry):
-            states, _, _, t = carry
+            states, t = carry[0], carry[-1]
             return jnp.any(~states.done) & (t < config.max_steps)
 
         def body(carry):
-            states, total, key, t = carry
+            states, total, first_death, first_dead, key, t = carry
             key, sub = jax.random.split(key)
             states, reward = jax.vmap(act)(jax.random.split(sub, batch), states, levels)
-            return states, total + reward[:, C.ALLY], key, t + 1
+            dead = dead_per_team(states, levels) > 0  # (B, 2)
+            new = (first_death == 0) & jnp.any(dead, -1)
+            first_death = jnp.where(new, states.step, first_death)
+            first_dead = jnp.where(new[:, None], dead, first_dead)
+            return states, total + reward[:, C.ALLY], first_death, first_dead, key, t + 1
 
-        init = (states, jnp.zeros(batch), keys[0], jnp.zeros((), jnp.int32))
-        states, total, _, _ = jax.lax.while_loop(cond, body, init)
-        return states.won[:, C.ALLY], states.step, total
+        init = (states, jnp.zeros(batch), jnp.zeros(batch, jnp.int32),
+                jnp.zeros((batch, C.NUM_TEAMS), bool), keys[0], jnp.zeros((), jnp.int32))
+        states, total, first_death, first_dead, _, _ = jax.lax.while_loop(cond, body, init)
+        members = jnp.stack([jnp.sum(levels.units.active & (levels.units.team == t), -1)
+                             for t in range(C.NUM_TEAMS)], -1)
+        eliminated = dead_per_team(states, levels) >= members
+        timeout = states.done & ~jnp.any(eliminated, -1)
+        return dict(ally_won=states.won[:, C.ALLY], length=states.step, ally_return=total,
+                    timeout=timeout, hp_ratio=states.hp_ratio, first_death=first_death,
+                    first_dead=first_dead, eliminated=eliminated)
 
     return simulator_jit(run)
 
@@ -101,32 +150,42 @@ def make_batch_runner(config: EnvConfig):
 def tier_table(config: EnvConfig, level: EnvParams, episodes: int, seed: int = 0,
                ally_tiers: Sequence[str] = tuple(HEURISTIC_TIERS),
                enemy_tiers: Sequence[str] = tuple(HEURISTIC_TIERS),
-               progress: bool = False) -> TierTable:
-    """Play `episodes` episodes for every (ally tier, enemy tier) pair on one level."""
+               progress: bool = False, profile: str = DEFAULT_PROFILE) -> TierTable:
+    """Play `episodes` episodes for every (ally tier, enemy tier) pair on one level, under
+    behaviour profile `profile`."""
     for tier in (*ally_tiers, *enemy_tiers):
         if tier not in HEURISTIC_TIERS:
             raise ValueError(f"unknown heuristic tier {tier!r}; expected one of "
                              f"{', '.join(HEURISTIC_TIERS)}")
+    level = with_profile(level, profile)
     run = make_batch_runner(config)
-    shape = (len(ally_tiers), len(enemy_tiers))
-    win, length, ret = (np.zeros(shape) for _ in range(3))
+    cols = len(enemy_tiers)
+    rows: list[dict[str, np.ndarray]] = []
     key = jax.random.key(seed)
     start = time.perf_counter()
     for i, ally in enumerate(ally_tiers):
         levels = stack_levels([level.replace(heuristic=heuristic_params(ally, enemy))
                                for enemy in enemy_tiers for _ in range(episodes)])
         key, sub = jax.random.split(key)
-        won, steps, total = jax.device_get(run(levels, jax.random.split(sub, len(enemy_tiers)
-                                                                          * episodes)))
-        win[i] = won.reshape(len(enemy_tiers), episodes).mean(-1)
-        length[i] = steps.reshape(len(enemy_tiers), episodes).mean(-1)
-        ret[i] = total.reshape(len(enemy_tiers), episodes).mean(-1)
+        out = jax.device_get(run(levels, jax.random.split(sub, cols * episodes)))
+        rows.append({k: np.asarray(v).reshape(cols, episodes, *np.shape(v)[1:])
+                     for k, v in out.items()})
         if progress:
             elapsed = time.perf_counter() - start
             eta = elapsed / (i + 1) * (len(ally_tiers) - i - 1)
             print(f"  row {i + 1}/{len(ally_tiers)} ({ally}) done: {elapsed:.0f} s elapsed, "
                   f"ETA {eta:.0f} s", file=sys.stderr, flush=True)
-    return TierTable(list(ally_tiers), list(enemy_tiers), episodes, win, length, ret)
+    stat = {k: np.stack([r[k] for r in rows]) for k in OUTCOMES}  # (A, E, episodes, ...)
+    died = stat["first_death"] > 0
+    with np.errstate(invalid="ignore"):
+        first_death = np.where(died, stat["first_death"], 0).sum(-1) / died.sum(-1)
+    return TierTable(
+        list(ally_tiers), list(enemy_tiers), episodes,
+        win_rate=stat["ally_won"].mean(-1), length=stat["length"].mean(-1),
+        ally_return=stat["ally_return"].mean(-1), timeout=stat["timeout"].mean(-1),
+        hp_ratio=stat["hp_ratio"].mean(2), first_death=first_death,
+        first_dead=stat["first_dead"].mean(2), eliminated=stat["eliminated"].mean(2),
+        profile=profile)
 
 
 def cmd_eval_heuristics(args: argparse.Namespace) -> int:
@@ -149,13 +208,15 @@ def cmd_eval_heuristics(args: argparse.Namespace) -> int:
                         f"separated subset of {','.join(HEURISTIC_TIERS)}")
     config = config_for([scenario], max_steps=args.max_steps)
     level = scenario.to_level(config)
+    profile = args.profile or DEFAULT_PROFILE
     print(f"{scenario.name}: heuristic tier v tier, {args.episodes} episodes per cell, "
-          f"max {args.max_steps} steps, seed {args.seed}", file=sys.stderr)
+          f"max {args.max_steps} steps, seed {args.seed}, profile {profile}", file=sys.stderr)
     t0 = time.perf_counter()
-    table = tier_table(config, level, args.episodes, args.seed, tiers, tiers, progress=True)
+    table = tier_table(config, level, args.episodes, args.seed, tiers, tiers, progress=True,
+                       profile=profile)
     elapsed = time.perf_counter() - t0
-    print(f"ally win rate (row tier = allies, column tier = enemies; ±95% CI), "
-          f"{scenario.name}, {args.episodes} episodes per cell:")
+    print(f"ally win rate (row tier = allies, column tier = enemies; [95% Wilson interval]), "
+          f"{scenario.name}, {args.episodes} episodes per cell, profile {profile}:")
     print(table.format())
     print(f"({elapsed:.1f} s, {len(tiers) ** 2 * args.episodes} episodes, compile included)")
     if args.json:
@@ -167,7 +228,7 @@ def cmd_eval_heuristics(args: argparse.Namespace) -> int:
 
 def add_route_parser(sub: argparse._SubParsersAction) -> None:
     """`heuristics` under `tabx eval` (a route of tabx.cli)."""
-    p = sub.add_parser("heuristics", help="tier-vs-tier win-rate table of the scripted policy")
+    p = sub.add_parser("heuristics", help="tier-vs-tier tables of the scripted policy")
     p.add_argument("name", help="scenario name, composition or file")
     p.add_argument("--episodes", type=int, default=64, help="episodes per cell (default 64)")
     p.add_argument("--seed", type=int, default=0)
@@ -175,6 +236,7 @@ def add_route_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--tiers", help=f"comma separated tiers (default all: "
                                    f"{','.join(HEURISTIC_TIERS)})")
     p.add_argument("--json", metavar="FILE", help="also write the table as JSON")
+    add_profile_argument(p)
     p.set_defaults(func=cmd_eval_heuristics)
 
 

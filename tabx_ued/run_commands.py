@@ -22,6 +22,7 @@ import argparse
 from pathlib import Path
 
 from tabx.errors import UserError
+from tabx.profiles import add_profile_argument
 
 DEFAULT_EPISODES = 100  # of `tabx eval` without --suite
 
@@ -85,6 +86,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     from tabx.controllers import Controller
+    from tabx.profiles import DEFAULT_PROFILE, with_profile
     from tabx.scenarios import ScenarioError, config_for, load_named
     from ued import compile_cache
     from ued.config import ConfigError
@@ -139,11 +141,14 @@ def cmd_eval(args: argparse.Namespace) -> int:
             level = scenario.to_level(env_config)
         except ScenarioError as err:
             raise UserError(f"{err} (the policy's EnvConfig: {env_config})") from None
+        profile = args.profile or (reference.config.env.profile if reference
+                                   else DEFAULT_PROFILE)
+        level = with_profile(level, profile)
         result = play(env_config, level, sides[0], sides[1], episodes, seed=args.seed,
                       greedy=args.greedy, record=bool(args.gif))
     except ConfigError as err:
         raise UserError(str(err)) from None
-    print(format_result(result, (sides[0], sides[1]), scenario.name, args.greedy))
+    print(format_result(result, (sides[0], sides[1]), scenario.name, args.greedy, profile))
     if args.gif:
         _write_gif(args.gif, env_config, level, sides, result)
     return 0
@@ -177,23 +182,26 @@ def _eval_suite(args: argparse.Namespace) -> int:
     try:
         suite = load_suite(args.suite)
         policy = load_policy(args.run_dir, args.checkpoint)
+        profile = args.profile or policy.config.env.profile
         key = jax.random.key(args.seed)
         if args.ray:
             from workers.ray_eval import evaluate_on_ray
 
             result = evaluate_on_ray(policy, suite, key, episodes=args.episodes,
-                                     greedy=args.greedy, address=args.address or "")
+                                     greedy=args.greedy, address=args.address or "",
+                                     profile=profile)
         else:
             evaluator = Evaluator(policy.learner, suite, episodes=args.episodes,
-                                  greedy=args.greedy)
+                                  greedy=args.greedy, profile=profile)
             result = evaluator.evaluate(policy.params, key)
     except ConfigError as err:
         raise UserError(str(err)) from None
-    print(f"policy {policy}")
+    print(f"policy {policy}, profile {profile}")
     print(format_table(result))
     if args.json:
         data = {"run_dir": str(policy.run_dir), "algorithm": policy.config.algorithm,
-                "update": policy.update, "seed": args.seed, **to_json(result)}
+                "update": policy.update, "seed": args.seed, "profile": profile,
+                **to_json(result)}
         atomic_write_json(args.json, data)
         print(f"wrote {args.json}")
     return 0
@@ -275,6 +283,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                          "on this machine, or on a cluster with --address")
     ev.add_argument("--address", metavar="ADDRESS",
                     help="with --ray: join a running Ray cluster (auto, or HOST:PORT)")
+    add_profile_argument(ev, "the run's env.profile, else tabx-ued")
     ev.set_defaults(func=cmd_eval)
 
 __all__ = ["add_parser", "cmd_eval", "cmd_train"]

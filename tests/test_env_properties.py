@@ -21,6 +21,7 @@ from hypothesis import strategies as st
 from tabx import constants as C
 from tabx.env import TabxEnv, random_legal_actions
 from tabx.params import EnvConfig, heuristic_params, make_level, physics_params
+from tabx.profiles import ALL_CHOICES
 
 CONFIG = EnvConfig(max_allies=3, max_enemies=3, max_zones=3, max_steps=24)
 N = CONFIG.num_units
@@ -115,11 +116,13 @@ def levels(draw):
         boundary_damage_rate=draw(floats(0.0, 1.0)), turn_rate=draw(floats(0.05, 2 * math.pi)),
         arena_size=(width, height))
     tiers = st.sampled_from(["random", "novice", "medium", "advanced", "expert"])
-    return make_level(
+    level = make_level(
         CONFIG, draw(units(centre, spread, CONFIG.max_allies)),
         draw(units(centre, spread, CONFIG.max_enemies)), draw(zones(half)),
         heuristic=heuristic_params(draw(tiers), draw(tiers)), physics=physics,
         reward_mode=draw(st.sampled_from([C.REWARD_MEAN_OF_RATIOS, C.REWARD_RATIO_OF_SUMS])))
+    # Any mix of the reference's choices (tabx.profiles): the invariants hold in every profile.
+    return level.replace(profile=jnp.asarray(draw(st.integers(0, ALL_CHOICES)), jnp.int32))
 
 
 policies = st.tuples(st.sampled_from([0.0, 0.3, 0.8]), st.sampled_from([0.0, 0.2, 1.0]))

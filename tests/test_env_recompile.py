@@ -1,10 +1,10 @@
 """Levels are data: any level of one EnvConfig runs through the same compiled reset and step.
 
 50 random levels (unit counts 1..max per team, zone counts 0..max, unit stats, positions,
-physics, arena size, opponent heuristic parameters and reward modes all different) go through
-one `jax.jit(env.step)` and one `jax.jit(env.reset)`; each must compile exactly once. The
-compilations are counted twice: by the jitted functions' executable caches and by JAX's own
-trace events (a retrace of anything during the loop would show up there).
+physics, arena size, opponent heuristic parameters, reward modes and behaviour profiles all
+different) go through one `jax.jit(env.step)` and one `jax.jit(env.reset)`; each must compile
+exactly once. The compilations are counted twice: by the jitted functions' executable caches
+and by JAX's own trace events (a retrace of anything during the loop would show up there).
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from tabx import constants as C
 from tabx.compile_counter import CompileCounter
 from tabx.env import TabxEnv
 from tabx.params import EnvConfig, heuristic_params, make_level, physics_params, stack_levels
+from tabx.profiles import ALL_CHOICES
 from tabx.scenarios import config_for, load_named
 
 CONFIG = EnvConfig(max_allies=4, max_enemies=4, max_zones=3, max_steps=64)
@@ -67,10 +68,12 @@ def random_level(rng: np.random.Generator, i: int):
         slop=float(rng.uniform(0, 0.05)), percent=float(rng.random()),
         boundary_damage_rate=float(rng.uniform(0, 0.5)),
         turn_rate=float(rng.uniform(0.1, 2 * math.pi)), arena_size=(width, height))
-    return make_level(CONFIG, units(1 + i % CONFIG.max_allies),
-                      units(1 + (i // CONFIG.max_allies) % CONFIG.max_enemies), zones,
-                      heuristic=heuristic_params(ally, enemy), physics=physics,
-                      reward_mode=i % 2)
+    level = make_level(CONFIG, units(1 + i % CONFIG.max_allies),
+                       units(1 + (i // CONFIG.max_allies) % CONFIG.max_enemies), zones,
+                       heuristic=heuristic_params(ally, enemy), physics=physics,
+                       reward_mode=i % 2)
+    # A different mix of the reference's behaviours per level (tabx.profiles).
+    return level.replace(profile=jnp.asarray((i * 0x9E3779B1) & ALL_CHOICES, jnp.int32))
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,5 @@
-"""Tier tournaments: stronger heuristic tiers beat weaker ones on a mirror scenario."""
+"""Tier tournaments: stronger heuristic tiers beat weaker ones on a mirror scenario; the
+per-matchup outcomes (time-outs, health, first death, eliminations) agree with each other."""
 
 from __future__ import annotations
 
@@ -22,8 +23,17 @@ def test_expert_and_medium_beat_random_on_a_mirror_scenario(grid):
                        enemy_tiers=("random",))
     assert table.win_rate.shape == (2, 1)
     # "Clearly more than half": the 95% interval is far above one half.
-    assert np.all(table.win_rate - table.ci95() > 0.75), table.format()
+    assert np.all(table.win_interval()[..., 0] > 0.75), table.format()
     assert np.all(table.length < config.max_steps)  # they win by elimination, early
+    # Outcomes agree: no time-outs, so every episode ends with one team wiped out, and the
+    # allies' wins are the enemies' eliminations; a wiped-out team has health 0.
+    assert np.all(table.timeout == 0.0)
+    np.testing.assert_allclose(table.eliminated[..., 1], table.win_rate)
+    np.testing.assert_allclose(table.eliminated.sum(-1), 1.0)
+    assert np.all(table.hp_ratio[..., 1] < 0.01) and np.all(table.hp_ratio[..., 0] > 0.2)
+    # Someone died in every episode, before the end, and mostly the random side first.
+    assert np.all(table.first_death >= 1) and np.all(table.first_death < table.length)
+    assert np.all(table.first_dead[..., 1] > 0.8)
 
 
 def test_random_allies_lose_to_expert_and_table_formats(grid):
@@ -31,8 +41,27 @@ def test_random_allies_lose_to_expert_and_table_formats(grid):
     table = tier_table(config, level, episodes=256, seed=2, ally_tiers=("random",),
                        enemy_tiers=("expert",))
     assert table.win_rate[0, 0] < 0.1
-    text = table.format()
-    assert "expert" in text.splitlines()[0] and text.splitlines()[1].startswith("random")
+    low, high = table.win_interval()[0, 0]
+    assert 0.0 <= low <= table.win_rate[0, 0] <= high < 0.15
+    text = table.format().splitlines()
+    assert "expert" in text[0] and text[1].startswith("random")
+    assert text[3].split()[:2] == ["ally", "enemy"]  # the per-matchup lines
+    cells = text[4].split()
+    assert cells[:2] == ["random", "expert"] and float(cells[2]) == table.win_rate[0, 0]
+
+
+def test_random_tier_never_attacks_under_the_reference_profile(grid):
+    """The reference draws epsilon actions among moves and turns only: random v random ends
+    by the time limit with nobody hurt by an attack (ours: they fight)."""
+    config, level = grid
+    ours = tier_table(config, level, episodes=16, seed=3, ally_tiers=("random",),
+                      enemy_tiers=("random",))
+    reference = tier_table(config, level, episodes=16, seed=3, ally_tiers=("random",),
+                           enemy_tiers=("random",), profile="reference")
+    assert reference.profile == "reference" and np.all(reference.timeout == 1.0)
+    assert np.isnan(reference.first_death[0, 0])  # nobody died
+    # Ours attack at random: more health lost than to the walls alone.
+    assert ours.hp_ratio[0, 0].mean() < reference.hp_ratio[0, 0].mean() - 0.05
 
 
 def test_unknown_tier_is_refused(grid):
@@ -48,13 +77,18 @@ def test_eval_heuristics_cli_prints_the_table_and_writes_json(capsys, tmp_path):
 
     out_json = tmp_path / "t.json"
     code = main(["eval", "heuristics", "grid", "--episodes", "256", "--tiers", "random,expert",
-                 "--json", str(out_json)])
+                 "--json", str(out_json), "--profile", "reference"])
     out = capsys.readouterr().out
     assert code == 0
-    assert "ally \\ enemy" in out and out.count("±") == 1 + 4  # the header, 2 x 2 cells
+    assert "ally \\ enemy" in out and out.count("[") == 1 + 4  # the header, 2 x 2 cells
+    assert "profile reference" in out
     data = json.loads(out_json.read_text())
     assert data["ally_tiers"] == ["random", "expert"] and data["episodes"] == 256
+    assert data["profile"] == "reference"
     assert data["win_rate"][1][0] > 0.9  # expert allies v random enemies
+    for name in ("timeout", "length", "hp_ratio", "first_death", "first_dead", "eliminated",
+                 "win_interval"):
+        assert np.shape(data[name])[:2] == (2, 2), name
 
 
 @pytest.mark.parametrize("argv, message", [

@@ -4,7 +4,7 @@ A config has six sections and two top-level keys:
 
     algorithm: mappo          # mappo | ippo
     seed: 0
-    env:     {scenario, team, opponent, max_steps}
+    env:     {scenario, team, opponent, max_steps, profile}
     learner: {PPO hyperparameters, num_envs, num_steps, total_timesteps}
     run:     {name, dir, checkpoint_every, keep_checkpoints, log_every}
     ray:     {enabled, address, explorers, staleness bounds, deterministic}  (RaySection)
@@ -49,6 +49,7 @@ class EnvSection:
     team: str = "ally"  # the learner's team; "enemy" is the reference's flipped setting
     opponent: str = "heuristic:medium"  # the other team: heuristic[:TIER], random or idle
     max_steps: int = 512  # episode limit
+    profile: str = "tabx-ued"  # behaviour profile (tabx.profiles): tabx-ued | reference
 
     def validate(self, prefix: str = "env") -> None:
         _check(len(self.scenario) > 0, f"{prefix}.scenario", "needs at least one scenario")
@@ -64,6 +65,10 @@ class EnvSection:
         except ValueError as err:
             raise ConfigError(f"{prefix}.opponent: {err}") from None
         _check(self.max_steps >= 1, f"{prefix}.max_steps", f"must be >= 1, got {self.max_steps}")
+        from tabx.profiles import PROFILE_NAMES
+
+        _check(self.profile in PROFILE_NAMES, f"{prefix}.profile",
+               f"must be one of {', '.join(PROFILE_NAMES)}, got {self.profile!r}")
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,6 @@ shares `wilson` and `mean_ci` with this module.
 from __future__ import annotations
 
 import functools
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,6 +34,7 @@ import numpy as np
 from tabx import constants as C
 from tabx.controllers import Controller, controlled_actions, with_tiers
 from tabx.env import TabxEnv
+from tabx.intervals import mean_ci, wilson
 from tabx.jit_options import learner_jit
 from tabx.params import EnvConfig, EnvParams, repeat_level
 from ued.config import TEAMS, ConfigError
@@ -74,26 +74,6 @@ class EvalResult:
 
     def mean_length(self) -> tuple[float, float]:
         return mean_ci(self.lengths.astype(np.float64))
-
-
-def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float, float]:
-    """(rate, low, high): the 95 % Wilson score interval of a binomial rate."""
-    if n == 0:
-        return math.nan, math.nan, math.nan
-    p = successes / n
-    denom = 1 + z * z / n
-    centre = (p + z * z / (2 * n)) / denom
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
-    return p, max(0.0, centre - half), min(1.0, centre + half)
-
-
-def mean_ci(x: np.ndarray, z: float = 1.96) -> tuple[float, float]:
-    """(mean, half width of the 95 % normal interval)."""
-    x = np.asarray(x, np.float64)
-    if x.size == 0:
-        return math.nan, math.nan
-    half = z * x.std(ddof=1) / math.sqrt(x.size) if x.size > 1 else math.nan
-    return float(x.mean()), float(half)
 
 
 def _policy_actions(policy: TrainedPolicy, params: Any, obs: jax.Array, mask: jax.Array,
@@ -179,9 +159,10 @@ def describe(side: Side) -> str:
 
 
 def format_result(result: EvalResult, sides: tuple[Side, Side], scenario: str,
-                  greedy: bool) -> str:
+                  greedy: bool, profile: str | None = None) -> str:
     lines = [f"scenario {scenario}: {result.episodes} episodes, "
-             f"{'greedy' if greedy else 'sampled'} policies"]
+             f"{'greedy' if greedy else 'sampled'} policies"
+             + (f", profile {profile}" if profile else "")]
     for team, side in enumerate(sides):
         rate, low, high = result.win_rate(team)
         ret, ret_ci = result.mean_return(team)

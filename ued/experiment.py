@@ -16,7 +16,9 @@ from ued.learners.ppo import PPOLearner
 
 
 def scenario_levels(config: TrainConfig) -> tuple[EnvConfig, list[EnvParams]]:
-    """The EnvConfig that fits every scenario of the config, and one level per scenario."""
+    """The EnvConfig that fits every scenario of the config, and one level per scenario
+    (playing the config's behaviour profile)."""
+    from tabx.profiles import with_profile
     from tabx.scenarios import ScenarioError, config_for, load_named
 
     scenarios = []
@@ -26,7 +28,8 @@ def scenario_levels(config: TrainConfig) -> tuple[EnvConfig, list[EnvParams]]:
         except ScenarioError as err:
             raise ConfigError(f"env.scenario: {err}") from None
     env_config = config_for(scenarios, max_steps=config.env.max_steps)
-    return env_config, [s.to_level(env_config) for s in scenarios]
+    return env_config, [with_profile(s.to_level(env_config), config.env.profile)
+                        for s in scenarios]
 
 
 def training_levels(config: TrainConfig) -> tuple[EnvConfig, EnvParams]:

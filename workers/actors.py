@@ -200,9 +200,10 @@ class SuiteEvaluatorActor(ActorBase):
     the run's config, it plays the parameters it is handed (numpy) and returns the result."""
 
     def __init__(self, config: TrainConfig, suite: EvalSuite, episodes: int | None,
-                 greedy: bool):
+                 greedy: bool, profile: str | None = None):
         super().__init__(config)
-        self.evaluator = Evaluator(learner_for(config), suite, episodes=episodes, greedy=greedy)
+        self.evaluator = Evaluator(learner_for(config), suite, episodes=episodes, greedy=greedy,
+                                   profile=profile or config.env.profile)
 
     def evaluate(self, params: Any, key: jax.Array) -> SuiteResult:
         return self.evaluator.evaluate(jax.tree.map(jnp.asarray, params), key)

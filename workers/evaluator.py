@@ -36,6 +36,7 @@ from tabx.controllers import Controller, with_tiers
 from tabx.heuristic import heuristic_actions_from_bits
 from tabx.observe import action_mask, pick_legal
 from tabx.params import EnvParams, stack_levels
+from tabx.profiles import DEFAULT_PROFILE, with_profile
 from tabx.rng import random_words, to_unit_float
 from ued.errors import ConfigError
 from ued.evaluate import TEAM_NAMES, mean_ci, wilson
@@ -156,7 +157,7 @@ class Evaluator:
     counts) and stacked; `evaluate(params, key)` is then one compiled call."""
 
     def __init__(self, learner: PPOLearner, suite: EvalSuite, episodes: int | None = None,
-                 greedy: bool = False):
+                 greedy: bool = False, profile: str = DEFAULT_PROFILE):
         from tabx.scenarios import ScenarioError, load_named
 
         episodes = suite.episodes if episodes is None else episodes
@@ -185,7 +186,7 @@ class Evaluator:
             opponent = Controller.parse(entry.opponent)
             controllers = [Controller("external"), Controller("external")]
             controllers[1 - learner.team] = opponent
-            levels.append(with_tiers(level, controllers))
+            levels.append(with_profile(with_tiers(level, controllers), profile))
             kinds.append(OPPONENT_KINDS.index(opponent.kind))
         #  Entry-major: envs [i * episodes, (i + 1) * episodes) play entry i.
         self.levels: EnvParams = jax.tree.map(

@@ -73,7 +73,7 @@ def level_service_for(config: TrainConfig, learner: PPOLearner) -> LevelService:
 def evaluators_for(config: TrainConfig, learner: PPOLearner) -> list[Evaluator]:
     """One Evaluator per zero-shot suite of `ued.eval_suites`."""
     episodes = config.ued.eval_episodes or None
-    return [Evaluator(learner, load_suite(name), episodes=episodes)
+    return [Evaluator(learner, load_suite(name), episodes=episodes, profile=config.env.profile)
             for name in config.ued.eval_suites]
 
 

@@ -25,9 +25,11 @@ from workers.ray_driver import actor_env, connect, learner_gpus
 
 def evaluate_on_ray(policy: TrainedPolicy, suite: EvalSuite, key: jax.Array, *,
                     episodes: int | None = None, greedy: bool = False,
-                    address: str = "", stream: TextIO | None = None) -> SuiteResult:
+                    address: str = "", stream: TextIO | None = None,
+                    profile: str | None = None) -> SuiteResult:
     """`suite` played by `policy` on a Ray actor; Ray is started here unless `address` joins a
-    cluster. The run's own `ray:` section gives the rest (CPUs, object store, GPUs)."""
+    cluster. The run's own `ray:` section gives the rest (CPUs, object store, GPUs); `profile`
+    (default: the run's) the behaviour profile."""
     stream = sys.stderr if stream is None else stream
     section: RaySection = dataclasses.replace(policy.config.ray, enabled=True, address=address)
     ray, connected_here = connect(section)
@@ -36,7 +38,7 @@ def evaluate_on_ray(policy: TrainedPolicy, suite: EvalSuite, key: jax.Array, *,
         actor: Any = ray.remote(SuiteEvaluatorActor).options(
             num_cpus=0 if gpus else 1, num_gpus=gpus, max_restarts=0,
             runtime_env={"env_vars": actor_env(gpus > 0)},
-        ).remote(policy.config, suite, episodes, greedy)
+        ).remote(policy.config, suite, episodes, greedy, profile)
         stream.write(f"ray: evaluating {suite.name} on a {'GPU' if gpus else 'CPU'} actor\n")
         stream.flush()
         try:
