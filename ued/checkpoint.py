@@ -61,10 +61,10 @@ class Checkpoints:
         key_shape = jax.random.key_data(jax.random.key(0)).shape
         abstract = {"train_state": jax.tree.map(ocp.utils.to_shape_dtype_struct, template),
                     "key": jax.ShapeDtypeStruct(key_shape, np.uint32)}
+        _quiet_abandoned_reads()
         try:
             item = self._manager.restore(update, args=ocp.args.StandardRestore(abstract))
         except Exception as err:  # noqa: BLE001 (orbax and TensorStore raise many kinds)
-            _quiet_abandoned_reads()
             raise CheckpointError(f"{self.directory / str(update)}: cannot be restored "
                                   f"({gist(err)})") from err
         key = jax.random.wrap_key_data(jnp.asarray(np.asarray(item["key"], np.uint32)))
@@ -107,14 +107,16 @@ _QUIETED = False
 
 
 def _quiet_abandoned_reads() -> None:
-    """After a failed restore, keep its leftovers off the terminal.
+    """Keep the leftovers of a failed restore off the terminal (installed once, at the first
+    restore).
 
     Orbax reads a checkpoint's arrays concurrently on an event loop that it closes as soon as
     the first read fails; the reads still in flight then complete into the closed loop, and
     Python reports each (one "RuntimeError: Event loop is closed" traceback per array, some
-    at exit) while asyncio logs the tasks whose errors nobody retrieved. The caller already
-    has the error that matters (a `CheckpointError`), so from the first failed restore on,
-    those two kinds of report are dropped; every other one is reported as before."""
+    at exit) while asyncio logs the tasks and futures whose errors nobody retrieved, some
+    before the restore has returned. The caller gets the error that matters (a
+    `CheckpointError`), so those two kinds of report are dropped; every other one is
+    reported as before."""
     global _QUIETED
     if _QUIETED:
         return

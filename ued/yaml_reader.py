@@ -65,6 +65,9 @@ class _StrictLoader(yaml.SafeLoader):
 
 def _one_line(err: yaml.YAMLError) -> str:
     """A YAML error as one line: the problem, then where it is."""
+    if isinstance(err, yaml.reader.ReaderError):
+        character = err.character if isinstance(err.character, int) else ord(err.character)
+        return f"a control character (#x{character:04x}) at offset {err.position}"
     if isinstance(err, yaml.MarkedYAMLError):
         problem = err.problem or err.context or "not valid YAML"
         mark = err.problem_mark or err.context_mark
@@ -85,13 +88,14 @@ def read_yaml(content: str | bytes, source: str) -> Any:
                               f"offset {err.start}): not a YAML file, or a damaged one") from None
     if "\x00" in content:
         raise ConfigError(f"{source}: contains NUL bytes: not a YAML file, or a damaged one")
-    loader = _StrictLoader(content)
     try:
-        data = loader.get_single_data()
+        loader = _StrictLoader(content)  # its reader refuses control characters already
+        try:
+            data = loader.get_single_data()
+        finally:
+            loader.dispose()
     except yaml.YAMLError as err:
         raise ConfigError(f"{source}: not valid YAML: {_one_line(err)}") from None
-    finally:
-        loader.dispose()
     if data is None:
         raise ConfigError(f"{source}: empty file (expected a YAML mapping of keys to values)")
     return data
