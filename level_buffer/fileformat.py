@@ -29,13 +29,14 @@ import numpy as np
 from level_buffer.config import BufferConfig
 from level_buffer.state import SLOT_FIELDS, STAT_NAMES, BufferState
 from level_buffer.tree import LevelSpec
+from tabx.errors import UserError
 
 MAGIC = "tabx-level-buffer"
 FORMAT_VERSION = 1
 BIT_GENERATORS = ("PCG64", "PCG64DXSM", "Philox", "SFC64", "MT19937")
 
 
-class BufferFileError(ValueError):
+class BufferFileError(UserError, ValueError):
     """A level-buffer file that cannot be used: missing, truncated, corrupted, from a newer
     format, or not matching the template. `str()` names the file and the problem."""
 

@@ -4,12 +4,15 @@ A checkpoint holds everything the loop needs to continue exactly where it stoppe
 learner's `TrainState` (parameters, optimiser state, update count) and the loop's PRNG key
 (as raw uint32 key data). Saving is synchronous, so a checkpoint is complete on disk when
 `save` returns and the next (donating) update cannot race it. Restoring against the
-structure of a freshly initialised state gives the saved arrays back bit for bit.
+structure of a freshly initialised state gives the saved arrays back bit for bit; a checkpoint
+that cannot be restored (a damaged or missing file) is a `CheckpointError` naming its folder.
 """
 
 from __future__ import annotations
 
+import logging
 import os
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -18,13 +21,22 @@ import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 
+from ued.errors import ConfigError, gist
+
+
+class CheckpointError(ConfigError):
+    """A checkpoint that cannot be restored; the message names its folder and the cause."""
+
+
 
 class Checkpoints:
     """The checkpoints of one run folder (`RUN_DIR/checkpoints/<update>/`)."""
 
-    def __init__(self, directory: str | os.PathLike, keep: int = 3):
+    def __init__(self, directory: str | os.PathLike, keep: int = 3, create: bool = True):
+        """`create=False` reads a run folder without making `directory` (it may be missing:
+        no checkpoint yet)."""
         self.directory = Path(directory).absolute()
-        options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=True,
+        options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=create,
                                                enable_async_checkpointing=False)
         self._manager = ocp.CheckpointManager(self.directory, options=options)
 
@@ -45,11 +57,16 @@ class Checkpoints:
         structure of `template` (a train state of the same learner)."""
         update = self.latest() if update is None else update
         if update is None:
-            raise FileNotFoundError(f"no checkpoint in {self.directory}")
+            raise CheckpointError(f"{self.directory}: no checkpoint")
         key_shape = jax.random.key_data(jax.random.key(0)).shape
         abstract = {"train_state": jax.tree.map(ocp.utils.to_shape_dtype_struct, template),
                     "key": jax.ShapeDtypeStruct(key_shape, np.uint32)}
-        item = self._manager.restore(update, args=ocp.args.StandardRestore(abstract))
+        _quiet_abandoned_reads()
+        try:
+            item = self._manager.restore(update, args=ocp.args.StandardRestore(abstract))
+        except Exception as err:  # noqa: BLE001 (orbax and TensorStore raise many kinds)
+            raise CheckpointError(f"{self.directory / str(update)}: cannot be restored "
+                                  f"({gist(err)})") from err
         key = jax.random.wrap_key_data(jnp.asarray(np.asarray(item["key"], np.uint32)))
         # Plain (uncommitted) arrays, like a freshly initialised state: a jitted update then
         # sees the same argument signature and does not compile again.
@@ -70,4 +87,48 @@ class Checkpoints:
         self.close()
 
 
-__all__ = ["Checkpoints"]
+def _is_abandoned_read(exc: BaseException | None) -> bool:
+    return isinstance(exc, RuntimeError) and str(exc) == "Event loop is closed"
+
+
+class _AbandonedTasks(logging.Filter):
+    """Drops asyncio's "... exception was never retrieved" records of orbax's and
+    TensorStore's tasks and futures."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        if "exception was never retrieved" not in message:
+            return True
+        text = message.lower()
+        return not any(word in text for word in ("orbax", "tensorstore", "zarr", "ocdbt"))
+
+
+_QUIETED = False
+
+
+def _quiet_abandoned_reads() -> None:
+    """Keep the leftovers of a failed restore off the terminal (installed once, at the first
+    restore).
+
+    Orbax reads a checkpoint's arrays concurrently on an event loop that it closes as soon as
+    the first read fails; the reads still in flight then complete into the closed loop, and
+    Python reports each (one "RuntimeError: Event loop is closed" traceback per array, some
+    at exit) while asyncio logs the tasks and futures whose errors nobody retrieved, some
+    before the restore has returned. The caller gets the error that matters (a
+    `CheckpointError`), so those two kinds of report are dropped; every other one is
+    reported as before."""
+    global _QUIETED
+    if _QUIETED:
+        return
+    _QUIETED = True
+    previous = sys.unraisablehook
+
+    def hook(unraisable: sys.UnraisableHookArgs) -> None:
+        if not _is_abandoned_read(unraisable.exc_value):
+            previous(unraisable)
+
+    sys.unraisablehook = hook
+    logging.getLogger("asyncio").addFilter(_AbandonedTasks())
+
+
+__all__ = ["CheckpointError", "Checkpoints"]

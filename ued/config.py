@@ -35,6 +35,7 @@ import yaml
 from ued.errors import ConfigError
 from ued.errors import check as _check
 from ued.levels import LevelSpace
+from ued.yaml_reader import read_yaml
 
 ALGORITHMS = ("mappo", "ippo")
 MATMUL_DTYPES = ("bfloat16", "float32")  # learner.matmul_dtype
@@ -323,6 +324,13 @@ def _type_name(tp: Any) -> str:
         tp, str(tp))
 
 
+def _shown(value: Any, limit: int = 80) -> str:
+    """`value` as an error message quotes it: its repr, cut short (a config value can be a
+    whole pasted file)."""
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters)"
+
+
 def _coerce(value: Any, tp: Any, key: str) -> Any:
     """`value` as the field type `tp` (int, float, bool, str, tuple[str, ...], str | None)."""
     origin = typing.get_origin(tp)
@@ -335,13 +343,13 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
         (item,) = [a for a in typing.get_args(tp) if a is not Ellipsis]
         items = [value] if isinstance(value, str) else value
         if not isinstance(items, Sequence) or isinstance(items, str | bytes):
-            raise ConfigError(f"{key}: expected a {_type_name(item)} or a list of them, got "
-                              f"{value!r}")
+            raise ConfigError(f"{key}: expected {_type_name(item)} or a list of them, got "
+                              f"{_shown(value)}")
         return tuple(_coerce(v, item, key) for v in items)
     if tp is bool:
         if isinstance(value, bool):
             return value
-        raise ConfigError(f"{key}: expected true or false, got {value!r}")
+        raise ConfigError(f"{key}: expected true or false, got {_shown(value)}")
     if tp is int:
         number = value
         if isinstance(value, str):  # YAML 1.1 reads 5e7 as a string
@@ -352,7 +360,7 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
         if isinstance(number, bool) or not isinstance(number, int | float) or (
                 isinstance(number, float) and not (math.isfinite(number)
                                                    and number == int(number))):
-            raise ConfigError(f"{key}: expected an integer, got {value!r}")
+            raise ConfigError(f"{key}: expected an integer, got {_shown(value)}")
         return int(number)
     if tp is float:
         number = value
@@ -363,12 +371,12 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
                 number = None
         if isinstance(number, bool) or not isinstance(number, int | float) or not math.isfinite(
                 float(number)):
-            raise ConfigError(f"{key}: expected a number, got {value!r}")
+            raise ConfigError(f"{key}: expected a number, got {_shown(value)}")
         return float(number)
     if tp is str:
         if isinstance(value, str):
             return value
-        raise ConfigError(f"{key}: expected a string, got {value!r}")
+        raise ConfigError(f"{key}: expected a string, got {_shown(value)}")
     raise TypeError(f"unsupported config field type {tp!r}")  # a bug here, not a user error
 
 
@@ -412,16 +420,19 @@ def config_from_dict(data: Any, source: str = "config") -> TrainConfig:
 def load_config(path: str | Path, overrides: Sequence[str] = ()) -> TrainConfig:
     """Read a YAML config file and apply `key=value` overrides."""
     path = Path(path)
+    data = apply_overrides(read_config_file(path), overrides, source=str(path))
+    return config_from_dict(data, source=str(path))
+
+
+def read_config_file(path: str | Path) -> Any:
+    """The parsed YAML of a config file (strict: `ued.yaml_reader`); ConfigError naming the
+    file when it cannot be read or parsed."""
+    path = Path(path)
     try:
-        text = path.read_text()
+        content = path.read_bytes()
     except OSError as err:
         raise ConfigError(f"{path}: cannot read the config ({err.strerror or err})") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        raise ConfigError(f"{path}: not valid YAML ({err})") from None
-    data = apply_overrides({} if data is None else data, overrides, source=str(path))
-    return config_from_dict(data, source=str(path))
+    return read_yaml(content, str(path))
 
 
 def _field_paths() -> dict[str, list[str]]:
@@ -456,8 +467,14 @@ def apply_overrides(data: Any, overrides: Sequence[str], source: str = "config")
         except yaml.YAMLError:
             value = text
         if "." not in key:
+            if key in sections:
+                raise ConfigError(f"override {item!r}: {key} is a section; give "
+                                  f"{key}.FIELD=VALUE")
             if key not in paths:
-                raise _unknown(key, sorted(paths))
+                close = difflib.get_close_matches(key, sorted(paths), n=1)
+                hint = (f"; did you mean {close[0]!r} ({', '.join(paths[close[0]])})?"
+                        if close else "")
+                raise ConfigError(f"override {item!r}: unknown key {key!r}{hint}")
             if len(paths[key]) > 1:
                 raise ConfigError(f"override {key!r} is ambiguous: use one of "
                                   f"{', '.join(paths[key])}")
@@ -482,4 +499,4 @@ def apply_overrides(data: Any, overrides: Sequence[str], source: str = "config")
 
 __all__ = ["ALGORITHMS", "TEAMS", "UED_METHODS", "UED_SCORES", "ConfigError", "EnvSection",
            "PPOConfig", "RaySection", "RunSection", "TrainConfig", "UEDSection", "apply_overrides",
-           "config_from_dict", "load_config"]
+           "config_from_dict", "load_config", "read_config_file"]

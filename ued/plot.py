@@ -42,6 +42,9 @@ def load_runs(run_dirs: list[str]) -> dict[str, dict[str, list[tuple[int, float]
         if not events.is_dir():
             raise UserError(f"{run}: not a run folder (no events/ folder)")
         out[Path(run).name] = read_scalars(events)
+    if not any(out.values()):
+        raise UserError(f"{', '.join(map(str, run_dirs))}: no scalars in events/ (no event "
+                        f"files yet, or only empty or damaged ones)")
     return out
 
 
@@ -63,7 +66,7 @@ def plot_runs(runs: dict[str, dict[str, list[tuple[int, float]]]], patterns: lis
                 tags.append(tag)
     if not tags:
         raise UserError(f"none of the tags {', '.join(patterns)} is in these runs (they have "
-                          f"{', '.join(all_tags[:12])}{' ...' if len(all_tags) > 12 else ''})")
+                        f"{', '.join(all_tags[:12])}{' ...' if len(all_tags) > 12 else ''})")
     columns = min(2, len(tags))
     rows = math.ceil(len(tags) / columns)
     fig, axes = plt.subplots(rows, columns, figsize=(6 * columns, 3.2 * rows), squeeze=False)

@@ -20,8 +20,8 @@ from typing import Any
 import jax
 
 from tabx.files import atomic_write_text
-from ued.checkpoint import Checkpoints
-from ued.config import TEAMS, ConfigError, TrainConfig, config_from_dict
+from ued.checkpoint import CheckpointError, Checkpoints
+from ued.config import TEAMS, ConfigError, TrainConfig, config_from_dict, read_config_file
 from ued.experiment import learner_for
 from ued.learners.ppo import PPOLearner
 
@@ -56,15 +56,10 @@ def create_run_dir(config: TrainConfig, run_dir: str | Path | None = None) -> Pa
 
 def read_run_config(run_dir: str | Path) -> TrainConfig:
     """The resolved config saved in a run folder."""
-    import yaml
-
     path = Path(run_dir) / CONFIG_FILE
     if not path.is_file():
         raise ConfigError(f"{run_dir}: not a run folder (no {CONFIG_FILE})")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as err:
-        raise ConfigError(f"{path}: not valid YAML ({err})") from None
+    data = read_config_file(path)
     if isinstance(data, dict) and isinstance(data.get("learner"), dict):
         # A resolved config lists every field; one without `matmul_dtype` was written before
         # that field existed, when the networks multiplied in float32: resume and evaluate it
@@ -73,9 +68,12 @@ def read_run_config(run_dir: str | Path) -> TrainConfig:
     return config_from_dict(data, source=str(path))
 
 
-def open_checkpoints(run_dir: str | Path, config: TrainConfig) -> Checkpoints:
-    """The orbax checkpoints of a run folder (close it, or use it as a context manager)."""
-    return Checkpoints(Path(run_dir) / CHECKPOINT_DIR, keep=config.run.keep_checkpoints)
+def open_checkpoints(run_dir: str | Path, config: TrainConfig, create: bool = True
+                     ) -> Checkpoints:
+    """The orbax checkpoints of a run folder (close it, or use it as a context manager);
+    `create=False` to read them without making the folder."""
+    return Checkpoints(Path(run_dir) / CHECKPOINT_DIR, keep=config.run.keep_checkpoints,
+                       create=create)
 
 
 @dataclass(frozen=True)
@@ -102,13 +100,17 @@ def load_policy(run_dir: str | Path, checkpoint: int | None = None) -> TrainedPo
     config = read_run_config(run_dir)
     learner = learner_for(config)
     template = learner.init(jax.random.key(0))
-    with open_checkpoints(run_dir, config) as ckpts:
+    with open_checkpoints(run_dir, config, create=False) as ckpts:
         if ckpts.latest() is None:
             raise ConfigError(f"{run_dir}: no checkpoint yet")
         if checkpoint is not None and checkpoint not in ckpts.all():
             raise ConfigError(f"{run_dir}: no checkpoint {checkpoint} (have "
                               f"{', '.join(map(str, ckpts.all()))})")
-        state, _, update = ckpts.restore(template, checkpoint)
+        try:
+            state, _, update = ckpts.restore(template, checkpoint)
+        except CheckpointError as err:
+            raise CheckpointError(f"{err}; `tabx runs check {run_dir}` lists the intact "
+                                  f"checkpoints, `--checkpoint N` picks one") from None
     return TrainedPolicy(run_dir, config, learner, state.params, update)
 
 

@@ -109,7 +109,7 @@ def load_suite(name_or_path: str | os.PathLike) -> EvalSuite:
     if isinstance(name_or_path, Path) or _looks_like_path(text):
         path = Path(text).expanduser()
         try:
-            content = path.read_text(encoding="utf-8")
+            content = path.read_bytes()
         except OSError as err:
             raise ConfigError(f"{path}: cannot read the suite ({err.strerror or err})") from None
         return parse_suite(content, source=str(path), default_name=path.stem)
@@ -124,14 +124,12 @@ def load_suite(name_or_path: str | os.PathLike) -> EvalSuite:
                        source=f"ued/{'/'.join(SUITE_FOLDER)}/{text}.yaml", default_name=text)
 
 
-def parse_suite(text: str, source: str = "<suite>", default_name: str = "suite") -> EvalSuite:
+def parse_suite(text: str | bytes, source: str = "<suite>", default_name: str = "suite"
+                ) -> EvalSuite:
     """Validate the YAML text of a suite; errors name `source` and the field."""
-    import yaml
+    from ued.yaml_reader import read_yaml
 
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        raise ConfigError(f"{source}: not valid YAML ({err})") from None
+    data = read_yaml(text, source)
     try:
         return suite_from_dict(data, default_name=default_name, source=source)
     except ConfigError as err:

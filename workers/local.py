@@ -53,7 +53,7 @@ from workers.evaluator import Evaluator
 from workers.explorer import Explorer
 from workers.learner import Learner
 from workers.level_service import LevelService, to_device, to_host
-from workers.resume import restore_intact
+from workers.resume import restore_intact, state_problem
 
 
 def level_service_for(config: TrainConfig, learner: PPOLearner) -> LevelService:
@@ -243,6 +243,14 @@ class UEDRun:
                 "branch_counts": {b.name.lower(): n for b, n in self.branch_counts.items()}}
 
     def load_state(self, state: dict[str, Any]) -> int:
+        """Continue from a snapshot's state (`state`); the policy version it was taken at.
+        ConfigError when the state does not fit this run (another curriculum's, damaged)."""
+        problem = state_problem(state)
+        if problem is None and state["curriculum"]["method"] != self.curriculum.name:
+            problem = (f"curriculum.method: {state['curriculum']['method']!r:.40}, but this "
+                       f"run's is {self.curriculum.name!r}")
+        if problem is not None:
+            raise ConfigError(f"level snapshot state: {problem}")
         self.curriculum.load_state_dict(state["curriculum"])
         self.sfl_scoring_steps = int(state.get("sfl_scoring_steps", 0))
         counts = state.get("branch_counts", {})  # absent from older snapshots: start at 0
@@ -360,8 +368,8 @@ def train_ued(config: TrainConfig, run_dir: Path, *, resume: bool = False,
         train_state, key, start = restored
         try:
             version = run.load_state(run.service.load(levels_dir, start))
-        except FileNotFoundError as err:
-            raise ConfigError(f"{run_dir}: cannot resume: {err}") from None
+        except (FileNotFoundError, ConfigError) as err:
+            raise ConfigError(f"{run_dir}: cannot resume from step {start}: {err}") from None
     learner = Learner(ppo_learner, train_state, version)
     stop = total if max_updates is None else min(total, start + max_updates)
     bar = Progress(total, stream) if progress else None

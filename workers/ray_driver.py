@@ -870,8 +870,8 @@ class RayDriver(Driver):
             train_state, key, start = restored
             try:
                 version = run.load_state(service.load(str(levels_dir), start))
-            except FileNotFoundError as err:
-                raise ConfigError(f"{run_dir}: cannot resume: {err}") from None
+            except (FileNotFoundError, ConfigError) as err:
+                raise ConfigError(f"{run_dir}: cannot resume from step {start}: {err}") from None
             ray.get(workers.learner.set_train_state.remote(train_state, version))
         learner = RemoteLearner(ray, workers.learner, version)
         placement = workers.placement(ray)

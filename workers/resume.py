@@ -22,8 +22,9 @@ import jax
 
 from level_buffer import LevelBuffer
 from level_buffer.fileformat import BufferFileError
-from ued.checkpoint import Checkpoints
+from ued.checkpoint import CheckpointError, Checkpoints
 from ued.config import ConfigError
+from ued.errors import gist
 from ued.run_folder import CHECKPOINT_DIR, LEVELS_DIR, SET_ASIDE_DIR
 from workers.level_service import SNAPSHOT_FILES
 
@@ -41,10 +42,32 @@ class StepCheck:
         return self.checkpoint is None and self.snapshot is None
 
 
-def first_line(err: BaseException) -> str:
-    """The gist of an error: its first line, without TensorStore's object dump."""
-    text = str(err).strip().split(" See full TensorStore details")[0]
-    return f"{type(err).__name__}: {text.splitlines()[0][:300]}" if text else type(err).__name__
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def state_problem(state: Any) -> str | None:
+    """What makes a parsed `state-<step>.json` unusable (the curriculum state a UED run writes
+    with its snapshot, `UEDRun.state`), or None."""
+    if not isinstance(state, dict):
+        return f"expected a JSON object, got {type(state).__name__}"
+    curriculum = state.get("curriculum")
+    if not isinstance(curriculum, dict) or not isinstance(curriculum.get("method"), str):
+        return "curriculum: expected an object with the curriculum's method"
+    last = curriculum.get("last_branch")
+    if last is not None and not _is_int(last):
+        return f"curriculum.last_branch: expected a branch number, got {last!r:.40}"
+    ids = curriculum.get("last_replay_ids", [])
+    if not isinstance(ids, list) or not all(_is_int(i) for i in ids):
+        return "curriculum.last_replay_ids: expected a list of level ids"
+    if not _is_int(state.get("version")):
+        return "version: expected the policy version (an integer)"
+    if not _is_int(state.get("sfl_scoring_steps", 0)):
+        return "sfl_scoring_steps: expected an integer"
+    counts = state.get("branch_counts", {})
+    if not isinstance(counts, dict) or not all(_is_int(n) and n >= 0 for n in counts.values()):
+        return "branch_counts: expected an object of step counts"
+    return None
 
 
 def snapshot_problem(levels_dir: Path, step: int, needs_buffer: bool) -> str | None:
@@ -53,9 +76,11 @@ def snapshot_problem(levels_dir: Path, step: int, needs_buffer: bool) -> str | N
     if not state.is_file():
         return f"{state}: missing (the snapshot of step {step} is incomplete)"
     try:
-        json.loads(state.read_text())
+        problem = state_problem(json.loads(state.read_text()))
     except (OSError, UnicodeDecodeError, ValueError) as err:
-        return f"{state}: unreadable ({first_line(err)})"
+        return f"{state}: unreadable ({gist(err)})"
+    if problem is not None:
+        return f"{state}: {problem}"
     for name, required in (("buffer", needs_buffer), ("learnable", False)):
         path = levels_dir / f"{name}-{step}.msgpack"
         if not path.is_file():
@@ -74,8 +99,8 @@ def checkpoint_problem(checkpoints: Checkpoints, template: Any, step: int
     """(what keeps checkpoint `step` from restoring or None, the restored (state, key, step))."""
     try:
         return None, checkpoints.restore(template, step)
-    except Exception as err:  # noqa: BLE001 (orbax and tensorstore raise many kinds)
-        return f"{checkpoints.directory / str(step)}: cannot be restored ({first_line(err)})", None
+    except CheckpointError as err:
+        return str(err), None
 
 
 def restore_intact(run_dir: Path, checkpoints: Checkpoints, template: Any, *,
@@ -86,6 +111,8 @@ def restore_intact(run_dir: Path, checkpoints: Checkpoints, template: Any, *,
     is intact. Newer steps' files are set aside."""
     steps = checkpoints.all()
     if not steps:
+        # Killed before its first checkpoint (perhaps after that step's snapshot): start over.
+        set_aside(run_dir, 0, stream)
         return None
     levels_dir = run_dir / LEVELS_DIR
     problems = []
@@ -155,7 +182,7 @@ def check_run_folder(run_dir: str | Path) -> list[StepCheck]:
     uses_buffer = ued.enabled and make_curriculum(ued.method, ued.exploratory_grad_updates,
                                                   ued.sfl_update_freq).uses_buffer
     template = learner_for(config).init(jax.random.key(0))
-    with open_checkpoints(run_dir, config) as checkpoints:
+    with open_checkpoints(run_dir, config, create=False) as checkpoints:
         return check_run(run_dir, checkpoints, template, snapshots=ued.enabled,
                          needs_buffer=uses_buffer)
 
@@ -180,4 +207,4 @@ def format_checks(run_dir: str | Path, checks: list[StepCheck]) -> str:
 
 
 __all__ = ["SET_ASIDE_DIR", "StepCheck", "check_run", "check_run_folder", "format_checks",
-           "restore_intact", "set_aside"]
+           "restore_intact", "set_aside", "state_problem"]

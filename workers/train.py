@@ -22,7 +22,7 @@ from typing import TextIO
 
 from ued import compile_cache
 from ued.config import ConfigError, RaySection, TrainConfig
-from ued.experiment import check_devices
+from ued.experiment import check_devices, scenario_levels
 from ued.run_folder import create_run_dir, open_checkpoints, read_run_config
 from workers.driver import Callback, Driver
 from workers.local import LocalDriver
@@ -63,7 +63,8 @@ def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = Non
                   f"updates); nothing to resume\n")
         return Path(run_dir)
     driver = driver if driver is not None else driver_for(config)
-    check_devices(config)  # before a new run's folder exists
+    check_devices(config)  # before a new run's folder exists, as are the scenarios read
+    scenario_levels(config)
     driver.check(config)
     if not resume:
         run_dir = create_run_dir(config, run_dir)

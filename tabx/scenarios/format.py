@@ -27,6 +27,7 @@ import numpy as np
 
 from tabx import constants as C
 from tabx import params as P
+from tabx.errors import UserError
 from tabx.files import atomic_write_text
 
 FORMAT = "tabx-scenario/1"
@@ -42,7 +43,7 @@ MAX_JSON_DEPTH = 32  # nested arrays and objects; a scenario file nests 4 (an ed
 MAX_FILE_BYTES = 8 * 1024 * 1024  # a scenario file is a few KiB; refuse to read more than this
 
 
-class ScenarioError(ValueError):
+class ScenarioError(UserError, ValueError):
     """A scenario that cannot be read: names the source file, the field path and the problem."""
 
     def __init__(self, message: str, path: str = "", source: str | None = None) -> None:
