@@ -154,8 +154,11 @@ RUN_DAMAGE = {
     "config missing": (lambda r: remove(r / CONFIG_FILE), r"not a run folder", CONFIG_READERS),
     "config empty": (lambda r: (r / CONFIG_FILE).write_bytes(b""), r"config\.yaml: empty file",
                      CONFIG_READERS),
+    # Cut in the middle of a token or at a line end: a YAML error with its place, or a field
+    # left without its value.
     "config truncated": (lambda r: truncate(r / CONFIG_FILE),
-                         r"config\.yaml: not valid YAML: .*\(line \d+, column \d+\)",
+                         r"config\.yaml: (not valid YAML: .*\(line \d+, column \d+\)|"
+                         r"[\w.]+: expected .*, got None)",
                          CONFIG_READERS),
     "config binary": (lambda r: (r / CONFIG_FILE).write_bytes(bytes(range(256))),
                       r"config\.yaml: not UTF-8", CONFIG_READERS),
@@ -277,7 +280,8 @@ def config_corpus(valid: str) -> dict[str, tuple[bytes, str]]:
         "comments only": (b"# nothing here\n", r"empty file"),
         "binary": (bytes(range(256)), r"not UTF-8"),
         "nul bytes": (valid.encode()[:40] + b"\x00\x00", r"NUL bytes"),
-        "truncated": (valid.encode()[: len(valid) // 2], r"not valid YAML: .*line \d+"),
+        "truncated": (valid.encode()[: len(valid) // 2],  # mid-token, or a value cut off
+                      r"not valid YAML: .*line \d+|[\w.]+: expected .*, got None"),
         "a list": (b"- algorithm: mappo\n", r"expected a mapping"),
         "a number": (b"3\n", r"expected a mapping"),
         "tab indent": (b"learner:\n\tlr: 0.1\n", r"not valid YAML: .*'\\t'"),
