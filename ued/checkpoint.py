@@ -5,11 +5,16 @@ learner's `TrainState` (parameters, optimiser state, update count) and the loop'
 (as raw uint32 key data). Saving is synchronous, so a checkpoint is complete on disk when
 `save` returns and the next (donating) update cannot race it. Restoring against the
 structure of a freshly initialised state gives the saved arrays back bit for bit.
+
+Each checkpoint also carries orbax `custom_metadata`, a small JSON mapping that says what
+produced it (`ued.run_folder.checkpoint_metadata`: config hash, update, policy version,
+package versions); checkpoints written without it restore all the same, and read back `{}`.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -35,10 +40,18 @@ class Checkpoints:
     def all(self) -> list[int]:
         return sorted(self._manager.all_steps())
 
-    def save(self, update: int, train_state: Any, key: jax.Array) -> None:
+    def save(self, update: int, train_state: Any, key: jax.Array,
+             metadata: Mapping[str, Any] | None = None) -> None:
+        """Save checkpoint `update`, with `metadata` (JSON values) as its custom metadata."""
         item = {"train_state": train_state, "key": np.asarray(jax.random.key_data(key))}
-        self._manager.save(int(update), args=ocp.args.StandardSave(item))
+        self._manager.save(int(update), args=ocp.args.StandardSave(item),
+                           custom_metadata=dict(metadata) if metadata else None)
         self._manager.wait_until_finished()
+
+    def metadata(self, update: int) -> dict[str, Any]:
+        """The custom metadata of checkpoint `update`; {} for one saved without any."""
+        step = self._manager.metadata(int(update))
+        return dict(getattr(step, "custom_metadata", None) or {})
 
     def restore(self, template: Any, update: int | None = None) -> tuple[Any, jax.Array, int]:
         """(train state, key, update) of checkpoint `update` (default: the newest), with the
