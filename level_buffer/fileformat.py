@@ -12,7 +12,7 @@ little-endian bytes of every level leaf and slot field, filled slots only:
 
 `decode` checks magic, version, checksum, every length, dtype and shape, and the buffer's own
 invariants before anything is built, so a bad file raises `BufferFileError` and is never
-half-loaded.
+half-loaded. A template may fill leaves that the file predates (`tree.file_defaults`).
 """
 
 from __future__ import annotations
@@ -146,9 +146,10 @@ def decode(data: bytes, name: str, template_level: Any = None) -> Any:
     header, payload_bytes = read_header(data, name)
     try:
         spec = LevelSpec.from_header(_get(header, "leaves", list, "header"))
+        filled: dict[str, Any] = {}  # leaves newer than the file, at their old meaning
         if template_level is not None:
             try:
-                spec = spec.with_template(template_level)
+                spec, filled = spec.with_template(template_level)
             except ValueError as err:
                 raise ValueError(f"does not match the template level: {err}") from err
         config = BufferConfig.from_dict(_get(header, "config", dict, "header"))
@@ -169,12 +170,15 @@ def decode(data: bytes, name: str, template_level: Any = None) -> Any:
 
         payload = msgpack.unpackb(payload_bytes, raw=False)
         raw_levels = _get(payload, "levels", list, "payload")
-        if len(raw_levels) != len(spec.paths):
-            raise ValueError(f"payload has {len(raw_levels)} level leaves, header "
-                             f"{len(spec.paths)}")
+        stored = len(spec.paths) - len(filled)
+        if len(raw_levels) != stored:
+            raise ValueError(f"payload has {len(raw_levels)} level leaves, header {stored}")
         levels = [_array(b, d, (size, *s), f"level leaf {p!r}")
                   for b, p, s, d in zip(raw_levels, spec.paths, spec.shapes, spec.dtypes,
-                                        strict=True)]
+                                        strict=False)]
+        levels += [np.full((size, *s), filled[p], d)
+                   for p, s, d in zip(spec.paths[stored:], spec.shapes[stored:],
+                                      spec.dtypes[stored:], strict=True)]
         raw_slots = _get(payload, "slots", dict, "payload")
         slots = {}
         for k, (dtype, _) in SLOT_FIELDS.items():

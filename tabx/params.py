@@ -129,6 +129,15 @@ class EnvParams:
     heuristic: HeuristicParams
     physics: PhysicsParams
     reward_mode: jax.Array  # int32 scalar: constants.REWARD_MEAN_OF_RATIOS or RATIO_OF_SUMS
+    # Randomised starts, drawn from the reset key (`tabx.starts`): with `shuffle_positions`
+    # each team's units trade start positions, then each moves by up to `start_noise` world
+    # units. Off (0, False) by default and in the paper's scenarios: a start is then the file's.
+    start_noise: jax.Array = struct.field(default_factory=lambda: jnp.zeros((), jnp.float32))
+    shuffle_positions: jax.Array = struct.field(default_factory=lambda: jnp.zeros((), bool))
+
+    # Leaves that level files written before they existed lack, and the value they then take
+    # (`level_buffer.tree.file_defaults`): such files load as levels with fixed starts.
+    FILE_DEFAULTS = {"start_noise": 0.0, "shuffle_positions": False}
 
 
 # --- defaults --------------------------------------------------------------------------------
@@ -232,13 +241,16 @@ def make_level(
     heuristic: HeuristicParams | None = None,
     physics: PhysicsParams | None = None,
     reward_mode: int = C.REWARD_MEAN_OF_RATIOS,
+    start_noise: float = 0.0,
+    shuffle_positions: bool = False,
 ) -> EnvParams:
     """Build one padded level from unit and zone records.
 
     A unit record needs `unit` (a name from constants.UNIT_NAMES) and `position`; `heading` and
     any stat (`health`, `max_health`, `speed`, `damage`, `attack_range`, `cooldown`, `radius`,
     `mass`, `sight_angle`, `heals`) override the unit type's defaults. A zone record has `type`
-    (name or int), `centre`, `semi_axes` and `effect`.
+    (name or int), `centre`, `semi_axes` and `effect`. `start_noise` and `shuffle_positions`
+    randomise the start from the reset key (`EnvParams`; `tabx.starts`).
     """
     if len(allies) > config.max_allies:
         raise ValueError(f"{len(allies)} allies exceed EnvConfig.max_allies={config.max_allies}")
@@ -284,6 +296,8 @@ def make_level(
         heuristic=heuristic if heuristic is not None else heuristic_params(),
         physics=physics if physics is not None else physics_params(),
         reward_mode=jnp.asarray(reward_mode, jnp.int32),
+        start_noise=jnp.asarray(start_noise, jnp.float32),
+        shuffle_positions=jnp.asarray(shuffle_positions, bool),
     )
 
 
