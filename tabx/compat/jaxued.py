@@ -56,7 +56,35 @@ class TabxUEDState:
     level: EnvParams
 
 
-class TabxUnderspecifiedEnv:
+class UnderspecifiedEnv:
+    """jaxued's base: `reset_to_level` and `step` fill in `params` and call the
+    `reset_env_to_level` and `step_env` of the environment or wrapper."""
+
+    @property
+    def default_params(self) -> TabxUEDParams:
+        return TabxUEDParams()
+
+    def reset_to_level(self, rng: jax.Array, level: EnvParams,
+                       params: TabxUEDParams | None = None) -> tuple[jax.Array, Any]:
+        params = self.default_params if params is None else params
+        return self.reset_env_to_level(rng, level, params)
+
+    def step(self, rng: jax.Array, state: Any, action: jax.Array,
+             params: TabxUEDParams | None = None
+             ) -> tuple[jax.Array, Any, jax.Array, jax.Array, Info]:
+        params = self.default_params if params is None else params
+        return self.step_env(rng, state, action, params)
+
+    def reset_env_to_level(self, rng: jax.Array, level: EnvParams, params: TabxUEDParams
+                           ) -> tuple[jax.Array, Any]:
+        raise NotImplementedError
+
+    def step_env(self, rng: jax.Array, state: Any, action: jax.Array, params: TabxUEDParams
+                 ) -> tuple[jax.Array, Any, jax.Array, jax.Array, Info]:
+        raise NotImplementedError
+
+
+class TabxUnderspecifiedEnv(UnderspecifiedEnv):
     """The TABX battle behind jaxued's `UnderspecifiedEnv` methods; vmap them over envs."""
 
     def __init__(self, config: EnvConfig, team: str = "ally",
@@ -75,22 +103,14 @@ class TabxUnderspecifiedEnv:
         first = 0 if team == "ally" else config.max_allies
         self.agent_slots = jnp.arange(first, first + self.num_agents)
 
-    @property
-    def default_params(self) -> TabxUEDParams:
-        return TabxUEDParams()
-
-    def reset_to_level(self, rng: jax.Array, level: EnvParams,
-                       params: TabxUEDParams | None = None) -> tuple[jax.Array, TabxUEDState]:
+    def reset_env_to_level(self, rng: jax.Array, level: EnvParams, params: TabxUEDParams
+                           ) -> tuple[jax.Array, TabxUEDState]:
         """A new episode in `level`, its randomised start (if any) drawn from `rng`."""
+        del params
         level = with_tiers(level, self.controllers)
         env_state = self.env.start_state(rng, level)
         state = TabxUEDState(env_state=env_state, level=level)
         return self.get_obs(state), state
-
-    def step(self, rng: jax.Array, state: TabxUEDState, action: jax.Array,
-             params: TabxUEDParams | None = None
-             ) -> tuple[jax.Array, TabxUEDState, jax.Array, jax.Array, Info]:
-        return self.step_env(rng, state, action, params or self.default_params)
 
     def step_env(self, rng: jax.Array, state: TabxUEDState, action: jax.Array,
                  params: TabxUEDParams) -> tuple[jax.Array, TabxUEDState, jax.Array,
@@ -134,7 +154,7 @@ class AutoReplayState:
     level: EnvParams
 
 
-class AutoReplayWrapper:
+class AutoReplayWrapper(UnderspecifiedEnv):
     """Restarts a finished episode in the same level (a fresh start drawn where the level
     randomises it), like jaxued's wrapper of the same name: obs and state are the new
     episode's, reward, done and info the step that ended."""
@@ -149,16 +169,10 @@ class AutoReplayWrapper:
     def default_params(self) -> TabxUEDParams:
         return self._env.default_params
 
-    def reset_to_level(self, rng: jax.Array, level: EnvParams,
-                       params: TabxUEDParams | None = None
-                       ) -> tuple[jax.Array, AutoReplayState]:
+    def reset_env_to_level(self, rng: jax.Array, level: EnvParams, params: TabxUEDParams
+                           ) -> tuple[jax.Array, AutoReplayState]:
         obs, env_state = self._env.reset_to_level(rng, level, params)
         return obs, AutoReplayState(env_state=env_state, level=level)
-
-    def step(self, rng: jax.Array, state: AutoReplayState, action: jax.Array,
-             params: TabxUEDParams | None = None
-             ) -> tuple[jax.Array, AutoReplayState, jax.Array, jax.Array, Info]:
-        return self.step_env(rng, state, action, params or self.default_params)
 
     def step_env(self, rng: jax.Array, state: AutoReplayState, action: jax.Array,
                  params: TabxUEDParams) -> tuple[jax.Array, AutoReplayState, jax.Array,
@@ -176,4 +190,4 @@ class AutoReplayWrapper:
 
 
 __all__ = ["AutoReplayState", "AutoReplayWrapper", "TabxUEDParams", "TabxUEDState",
-           "TabxUnderspecifiedEnv"]
+           "TabxUnderspecifiedEnv", "UnderspecifiedEnv"]
