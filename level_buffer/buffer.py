@@ -23,7 +23,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from functools import lru_cache
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -453,9 +453,9 @@ class LevelBuffer:
         return encode(self.state())
 
     @classmethod
-    def from_bytes(cls, data: bytes, template_level: Any = None, name: str = "<bytes>",
-                   defaults: Mapping[str, Any] | None = None) -> LevelBuffer:
-        return cls.from_state(decode(data, name, template_level, defaults))
+    def from_bytes(cls, data: bytes, template_level: Any = None, name: str = "<bytes>"
+                   ) -> LevelBuffer:
+        return cls.from_state(decode(data, name, template_level))
 
     def save(self, path: str | os.PathLike) -> Path:
         """Write the buffer atomically (temp file, fsync, rename): a crash never leaves a
@@ -465,16 +465,15 @@ class LevelBuffer:
         return atomic_write_bytes(path, self.to_bytes())
 
     @classmethod
-    def load(cls, path: str | os.PathLike, template_level: Any = None,
-             defaults: Mapping[str, Any] | None = None) -> LevelBuffer:
+    def load(cls, path: str | os.PathLike, template_level: Any = None) -> LevelBuffer:
         """Read a buffer file. With a template, levels come back as pytrees like it (and the
-        file must hold exactly its leaves, shapes and dtypes, except that `defaults`, {key
-        path: value}, fills leaves added to the level type after the file was written);
-        without one, as dicts keyed by key path ("units.health"). Raises BufferFileError
-        naming the file for a missing, truncated, corrupted or mismatched file; nothing is
+        file must hold exactly its leaves, shapes and dtypes, except leaves added to the level
+        type after the file was written, which its class's `FILE_DEFAULTS` fill); without
+        one, as dicts keyed by key path ("units.health"). Raises BufferFileError naming the
+        file for a missing, truncated, corrupted or mismatched file; nothing is
         half-loaded."""
         try:
             data = Path(path).read_bytes()
         except OSError as err:
             raise BufferFileError(path, f"cannot read: {err.strerror or err}") from err
-        return cls.from_bytes(data, template_level, str(path), defaults)
+        return cls.from_bytes(data, template_level, str(path))

@@ -12,7 +12,7 @@ little-endian bytes of every level leaf and slot field, filled slots only:
 
 `decode` checks magic, version, checksum, every length, dtype and shape, and the buffer's own
 invariants before anything is built, so a bad file raises `BufferFileError` and is never
-half-loaded.
+half-loaded. A template may fill leaves that the file predates (`tree.file_defaults`).
 """
 
 from __future__ import annotations
@@ -20,7 +20,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from collections.abc import Mapping
 from typing import Any
 
 import msgpack
@@ -29,14 +28,13 @@ import numpy as np
 from level_buffer.config import BufferConfig
 from level_buffer.state import SLOT_FIELDS, STAT_NAMES, BufferState
 from level_buffer.tree import LevelSpec
-from tabx.errors import UserError
 
 MAGIC = "tabx-level-buffer"
 FORMAT_VERSION = 1
 BIT_GENERATORS = ("PCG64", "PCG64DXSM", "Philox", "SFC64", "MT19937")
 
 
-class BufferFileError(UserError, ValueError):
+class BufferFileError(ValueError):
     """A level-buffer file that cannot be used: missing, truncated, corrupted, from a newer
     format, or not matching the template. `str()` names the file and the problem."""
 
@@ -54,21 +52,6 @@ def make_rng(state: dict[str, Any]) -> np.random.Generator:
     bit_gen = getattr(np.random, name)()
     bit_gen.state = state
     return np.random.Generator(bit_gen)
-
-
-def _with_defaults(stored: LevelSpec, template: LevelSpec, defaults: Mapping[str, Any]
-                   ) -> tuple[LevelSpec, list[tuple[tuple[int, ...], np.dtype, Any]]]:
-    """`stored` plus the template's leaves it lacks that have a default, and (shape, dtype,
-    value) of each leaf added, in order."""
-    paths, shapes, dtypes = list(stored.paths), list(stored.shapes), list(stored.dtypes)
-    added = []
-    for p, shape, dtype in zip(template.paths, template.shapes, template.dtypes, strict=True):
-        if p not in stored.paths and p in defaults:
-            paths.append(p)
-            shapes.append(shape)
-            dtypes.append(dtype)
-            added.append((shape, dtype, defaults[p]))
-    return LevelSpec(tuple(paths), tuple(shapes), tuple(dtypes)), added
 
 
 def _le(arr: np.ndarray) -> bytes:
@@ -158,20 +141,15 @@ def read_header(data: bytes, name: str) -> tuple[dict[str, Any], bytes]:
     return header, payload
 
 
-def decode(data: bytes, name: str, template_level: Any = None,
-           defaults: Mapping[str, Any] | None = None) -> Any:
-    """A validated `BufferState` from file bytes; BufferFileError(name, ...) on any problem.
-    `defaults` ({key path: value}) fills the template's leaves that the file lacks (a file
-    written before the level type gained them), every level with that value."""
+def decode(data: bytes, name: str, template_level: Any = None) -> Any:
+    """A validated `BufferState` from file bytes; BufferFileError(name, ...) on any problem."""
     header, payload_bytes = read_header(data, name)
     try:
-        file_spec = LevelSpec.from_header(_get(header, "leaves", list, "header"))
-        spec, added = file_spec, []
+        spec = LevelSpec.from_header(_get(header, "leaves", list, "header"))
+        filled: dict[str, Any] = {}  # leaves newer than the file, at their old meaning
         if template_level is not None:
-            spec, added = _with_defaults(file_spec, LevelSpec.from_template(template_level),
-                                         defaults or {})
             try:
-                spec = spec.with_template(template_level)
+                spec, filled = spec.with_template(template_level)
             except ValueError as err:
                 raise ValueError(f"does not match the template level: {err}") from err
         config = BufferConfig.from_dict(_get(header, "config", dict, "header"))
@@ -192,13 +170,15 @@ def decode(data: bytes, name: str, template_level: Any = None,
 
         payload = msgpack.unpackb(payload_bytes, raw=False)
         raw_levels = _get(payload, "levels", list, "payload")
-        if len(raw_levels) != len(file_spec.paths):
-            raise ValueError(f"payload has {len(raw_levels)} level leaves, header "
-                             f"{len(file_spec.paths)}")
+        stored = len(spec.paths) - len(filled)
+        if len(raw_levels) != stored:
+            raise ValueError(f"payload has {len(raw_levels)} level leaves, header {stored}")
         levels = [_array(b, d, (size, *s), f"level leaf {p!r}")
-                  for b, p, s, d in zip(raw_levels, file_spec.paths, file_spec.shapes,
-                                        file_spec.dtypes, strict=True)]
-        levels += [np.full((size, *s), v, d) for s, d, v in added]
+                  for b, p, s, d in zip(raw_levels, spec.paths, spec.shapes, spec.dtypes,
+                                        strict=False)]
+        levels += [np.full((size, *s), filled[p], d)
+                   for p, s, d in zip(spec.paths[stored:], spec.shapes[stored:],
+                                      spec.dtypes[stored:], strict=True)]
         raw_slots = _get(payload, "slots", dict, "payload")
         slots = {}
         for k, (dtype, _) in SLOT_FIELDS.items():

@@ -133,13 +133,31 @@ class LevelSpec:
         order = [path_str(p) for p in _treedef_paths(self.treedef)]
         return jax.tree_util.tree_unflatten(self.treedef, [by_name[n] for n in order])
 
-    def with_template(self, level: Any) -> LevelSpec:
-        """This spec (read from a file) checked against a template and given its treedef."""
+    def with_template(self, level: Any) -> tuple[LevelSpec, dict[str, Any]]:
+        """This spec (read from a file) checked against a template and given its treedef, and
+        the leaves the file lacks that the template's `file_defaults` fill: {path: value}.
+        The spec then lists those leaves after the file's."""
         template = LevelSpec.from_template(level)
-        diffs = template.differences(self)
+        defaults = file_defaults(level)
+        filled = {p: defaults[p] for p in template.paths
+                  if p not in self.paths and p in defaults}
+        stored = self
+        if filled:
+            index = {p: i for i, p in enumerate(template.paths)}
+            stored = LevelSpec((*self.paths, *filled),
+                               (*self.shapes, *(template.shapes[index[p]] for p in filled)),
+                               (*self.dtypes, *(template.dtypes[index[p]] for p in filled)))
+        diffs = template.differences(stored)
         if diffs:
             raise ValueError("; ".join(diffs))
-        return LevelSpec(self.paths, self.shapes, self.dtypes, template.treedef)
+        return LevelSpec(stored.paths, stored.shapes, stored.dtypes, template.treedef), filled
+
+
+def file_defaults(level: Any) -> dict[str, Any]:
+    """Leaves of a level that files written before the leaf existed lack, with the value that
+    gives such a level its old meaning: the level's class names them as `FILE_DEFAULTS`
+    ({key path: value}; `tabx.params.EnvParams`). Other missing leaves stay an error."""
+    return dict(getattr(type(level), "FILE_DEFAULTS", None) or {})
 
 
 def _treedef_paths(treedef: Any) -> list[tuple[Any, ...]]:

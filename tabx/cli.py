@@ -41,9 +41,19 @@ def add_simulator_commands(subparsers: argparse._SubParsersAction,
     editor_cli.add_parser(subparsers)
 
 
+def version_text() -> str:
+    """`tabx --version`: this package's version and the JAX it runs on."""
+    import jax
+
+    from tabx import __version__
+
+    return f"tabx-ued {__version__} (jax {jax.__version__}, python {sys.version.split()[0]})"
+
+
 def build_parser(registrars: Iterable[Registrar]) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="tabx", description="TABX battle simulator, MARL learners and UED tools.")
+    parser.add_argument("--version", action="version", version=version_text())
     parser.add_argument("--debug", action="store_true",
                         help="show the Python traceback of an error (or set TABX_DEBUG=1)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -119,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 __all__ = ["ROUTES", "Registrar", "UserError", "add_simulator_commands", "build_parser", "main",
-           "run"]
+           "run", "version_text"]
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -31,6 +31,7 @@ from tabx.profiles import CORPSE_DRIFT, CORPSE_VISION, reference_choice
 from tabx.reward import dense_reward, team_hp_ratio, winner_mask
 from tabx.rng import random_words, to_unit_float
 from tabx.selection import materialise
+from tabx.starts import randomise_start
 from tabx.state import EnvState
 from tabx.zones import apply_bush_hiding, bush_hidden, lava_damage, swamp_speed
 
@@ -56,10 +57,15 @@ class TabxEnv:
         return C.NUM_ACTIONS
 
     def reset(self, key: jax.Array, params: EnvParams) -> tuple[jax.Array, EnvState]:
-        """(obs (N, obs_size), state) at the start of the level. Deterministic: key unused."""
-        del key
-        state = self.initial_state(params)
+        """(obs (N, obs_size), state) at the start of the level. The key draws the start
+        positions where the level randomises them (`start_noise`, `shuffle_positions`;
+        `tabx.starts`); otherwise the start is the level's own, whatever the key."""
+        state = self.start_state(key, params)
         return self.observe(state, params), state
+
+    def start_state(self, key: jax.Array, params: EnvParams) -> EnvState:
+        """The start state of a level, with its randomised starts drawn from `key`."""
+        return self.initial_state(randomise_start(key, params))
 
     def step(self, key: jax.Array, state: EnvState, actions: jax.Array, params: EnvParams
              ) -> tuple[jax.Array, EnvState, jax.Array, jax.Array, Info]:

@@ -130,10 +130,16 @@ class EnvParams:
     physics: PhysicsParams
     reward_mode: jax.Array  # int32 scalar: constants.REWARD_MEAN_OF_RATIOS or RATIO_OF_SUMS
     profile: jax.Array  # int32 scalar: reference behaviours played, one bit each (tabx.profiles)
+    # Randomised starts, drawn from the reset key (`tabx.starts`): with `shuffle_positions`
+    # each team's units trade start positions, then each moves by up to `start_noise` world
+    # units. Off (0, False) by default and in the paper's scenarios: a start is then the file's.
+    start_noise: jax.Array = struct.field(default_factory=lambda: jnp.zeros((), jnp.float32))
+    shuffle_positions: jax.Array = struct.field(default_factory=lambda: jnp.zeros((), bool))
 
-
-# Leaves a level file written before they existed lacks, and the value such a file means.
-LEAF_DEFAULTS: dict[str, Any] = {"profile": np.int32(0)}
+    # Leaves that level files written before they existed lack, and the value they then take
+    # (`level_buffer.tree.file_defaults`): such files load as levels with fixed starts.
+    # The profile's default is the project's behaviour (no reference choice).
+    FILE_DEFAULTS = {"start_noise": 0.0, "shuffle_positions": False, "profile": 0}
 
 
 # --- defaults --------------------------------------------------------------------------------
@@ -237,13 +243,16 @@ def make_level(
     heuristic: HeuristicParams | None = None,
     physics: PhysicsParams | None = None,
     reward_mode: int = C.REWARD_MEAN_OF_RATIOS,
+    start_noise: float = 0.0,
+    shuffle_positions: bool = False,
 ) -> EnvParams:
     """Build one padded level from unit and zone records.
 
     A unit record needs `unit` (a name from constants.UNIT_NAMES) and `position`; `heading` and
     any stat (`health`, `max_health`, `speed`, `damage`, `attack_range`, `cooldown`, `radius`,
     `mass`, `sight_angle`, `heals`) override the unit type's defaults. A zone record has `type`
-    (name or int), `centre`, `semi_axes` and `effect`.
+    (name or int), `centre`, `semi_axes` and `effect`. `start_noise` and `shuffle_positions`
+    randomise the start from the reset key (`EnvParams`; `tabx.starts`).
     """
     if len(allies) > config.max_allies:
         raise ValueError(f"{len(allies)} allies exceed EnvConfig.max_allies={config.max_allies}")
@@ -290,6 +299,8 @@ def make_level(
         physics=physics if physics is not None else physics_params(),
         reward_mode=jnp.asarray(reward_mode, jnp.int32),
         profile=jnp.zeros((), jnp.int32),
+        start_noise=jnp.asarray(start_noise, jnp.float32),
+        shuffle_positions=jnp.asarray(shuffle_positions, bool),
     )
 
 

@@ -41,12 +41,13 @@ class AutoResetEnv:
     def step(self, key: jax.Array, state: AutoResetState, actions: jax.Array,
              next_level: EnvParams | None = None
              ) -> tuple[jax.Array, AutoResetState, jax.Array, jax.Array, Info]:
-        """Step; a finished episode restarts in `next_level` (default: the same level)."""
+        """Step; a finished episode restarts in `next_level` (default: the same level, from
+        the same start state; a new level's randomised start is drawn from `key`)."""
         if next_level is None:
             obs, env_state, reward, done, info = self.env.step_autoreset(
                 key, state.env_state, actions, state.level, state.start_state)
             return obs, state.replace(env_state=env_state), reward, done, info
-        next_start = self.env.initial_state(next_level)
+        next_start = self.env.start_state(jax.random.fold_in(key, 1), next_level)
         obs, env_state, reward, done, info = self.env.step_autoreset(
             key, state.env_state, actions, state.level, next_start, next_level)
         pick = lambda new, old: jax.tree.map(lambda n, o: jnp.where(done, n, o), new, old)

@@ -1,6 +1,8 @@
 """`tabx train` and `tabx eval`: runs on the command line (a registrar of `tabx_ued.cli`).
 
     tabx train configs/marl/mappo_crossfire.yaml [KEY=VALUE ...]
+    tabx train quickstart | ued/accel_zone [KEY=VALUE ...]       (a shipped config, by name)
+    tabx train --list-configs
     tabx train --resume RUN_DIR [--ray [--address A] [ray.KEY=VALUE ...]]
     tabx eval RUN_DIR [--scenario NAME] [--enemy heuristic:medium] [--episodes K] [--gif PATH]
     tabx eval --ally RUN_A --enemy RUN_B [--scenario NAME]
@@ -32,6 +34,11 @@ def cmd_train(args: argparse.Namespace) -> int:
     from workers.driver import RunStopped
     from workers.train import train
 
+    if args.list_configs:
+        from ued.config_files import list_configs
+
+        print("\n".join(list_configs()))
+        return 0
     positional = list(args.items)
     config_path = None
     if positional and "=" not in positional[0]:
@@ -73,8 +80,9 @@ def cmd_train(args: argparse.Namespace) -> int:
                             progress=not args.quiet, ray=ray)
         else:
             if config_path is None:
-                raise UserError("give a config file (e.g. configs/marl/mappo_crossfire.yaml) "
-                                "or --resume RUN_DIR")
+                raise UserError("give a config file or a shipped config's name (e.g. "
+                                "quickstart, marl/mappo_crossfire; --list-configs) or "
+                                "--resume RUN_DIR")
             config = load_config(config_path, [*overrides, *ray_overrides])
             run_dir = train(config, run_dir=args.run_dir, max_updates=args.max_updates,
                             progress=not args.quiet)
@@ -233,12 +241,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     train = subparsers.add_parser(
         "train", help="train MAPPO or IPPO from a YAML config (UED if ued.method is set)",
         description="Train MAPPO or IPPO from a YAML config (configs/marl/; with ued.method "
-                    "set, a UED curriculum: configs/ued/, docs/ued.md). Overrides: "
+                    "set, a UED curriculum: configs/ued/, docs/ued.md), given as a file or as "
+                    "a shipped config's name (quickstart, ued/accel_zone). Overrides: "
                     "KEY=VALUE with KEY a section.field (learner.lr) or an unambiguous field "
                     "name (lr). The run folder (config.yaml, events/, checkpoints/) is printed "
                     "at the end.")
     train.add_argument("items", nargs="*", metavar="CONFIG [KEY=VALUE ...]",
-                       help="config file, then overrides")
+                       help="config file or shipped config name, then overrides")
+    train.add_argument("--list-configs", action="store_true",
+                       help="list the shipped configs' names and exit")
     train.add_argument("--resume", metavar="RUN_DIR",
                        help="continue a run from its newest checkpoint")
     train.add_argument("--run-dir", help="the run folder (default: run.dir/NAME-TIMESTAMP)")

@@ -3,9 +3,11 @@
     tabx runs status RUN_DIR     a Ray run's state: actors and nodes, deaths, rate, staleness
     tabx runs buffer RUN_DIR     the live level buffer of a running Ray run (its LevelService)
     tabx runs check RUN_DIR      every checkpoint and level snapshot: intact or damaged
+    tabx runs show RUN_DIR       the config, and what produced each checkpoint (its metadata)
 
 `status` and `buffer` read `RUN_DIR/ray.json` (`workers.ray_live`); `buffer` joins the run's
-cluster. `check` reads any run folder (`workers.resume`) and changes nothing.
+cluster. `check` (`workers.resume`) and `show` (`ued.run_folder.run_summary`) read any run
+folder and change nothing.
 """
 
 from __future__ import annotations
@@ -43,6 +45,17 @@ def cmd_check(args: argparse.Namespace) -> int:
     return 0 if all(check.intact for check in checks) else 1
 
 
+def cmd_show(args: argparse.Namespace) -> int:
+    from ued.config import ConfigError
+    from ued.run_folder import run_summary
+
+    try:
+        print(run_summary(args.run_dir))
+    except ConfigError as err:
+        raise UserError(str(err)) from None
+    return 0
+
+
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     runs = subparsers.add_parser("runs", help="look at a Ray run while it runs",
                                  description="Look at a run trained with --ray: its record, "
@@ -59,6 +72,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                                            "folder: intact or damaged (exit 1 if any is)")
     check.add_argument("run_dir", help="the run folder")
     check.set_defaults(func=cmd_check)
+    show = which.add_parser("show", help="a run folder's config and each checkpoint's metadata "
+                                         "(config hash, update, policy version, versions)")
+    show.add_argument("run_dir", help="the run folder")
+    show.set_defaults(func=cmd_show)
 
 
-__all__ = ["add_parser", "cmd_buffer", "cmd_check", "cmd_status"]
+__all__ = ["add_parser", "cmd_buffer", "cmd_check", "cmd_show", "cmd_status"]

@@ -18,7 +18,7 @@ from tabx import constants as C
 from tabx.compile_counter import CompileCounter
 from tabx.controllers import Controller, controlled_actions
 from tabx.env import TabxEnv
-from tabx.params import LEAF_DEFAULTS, heuristic_params, index_level, stack_levels
+from tabx.params import heuristic_params, index_level, stack_levels
 from tabx.profiles import ALL_CHOICES, PROFILES, check_profile, profile_name, with_profile
 
 ENV = TabxEnv(CONFIG)
@@ -92,7 +92,7 @@ def test_a_buffer_file_written_before_profiles_loads_as_the_default_profile(tmp_
     path = buf.save(tmp_path / "old.msgpack")
     with pytest.raises(BufferFileError, match="missing from the file: \\['profile'\\]"):
         LevelBuffer.load(path, template)
-    loaded = LevelBuffer.load(path, with_profile(template, "reference"), LEAF_DEFAULTS)
+    loaded = LevelBuffer.load(path, with_profile(template, "reference"))
     level_back = loaded.get_level(int(loaded.ids[0]))
     assert int(np.asarray(level_back.profile)) == 0  # the default, not the template's
     np.testing.assert_array_equal(np.asarray(level_back.units.health),

@@ -253,5 +253,11 @@ def test_evaluator_logs_during_training_and_snapshots_are_buffer_files(tmp_path,
     assert any(tag.startswith("eval/duel/") and tag.endswith("@idle/win_rate")
                for tag in scalars)
     assert {"buffer/size", "levels/unit_max_health", "ued/branch"} <= set(scalars)
+    # Steps/s split by kind (Robust PLR does not train on new levels); the old tag is the sum.
+    total, trained, explored = (scalars[f"time/{kind}steps_per_s"]
+                                for kind in ("", "trained_", "explored_"))
+    assert [s for s, _ in total] == [s for s, _ in trained] == [s for s, _ in explored]
+    for (_, all_), (_, t), (_, e) in zip(total, trained, explored, strict=True):
+        assert t >= 0 and e >= 0 and all_ == pytest.approx(t + e, rel=1e-4)
     assert main(["buffer", "inspect", str(run_dir / LEVELS_DIR / "buffer-4.msgpack")]) == 0
     assert "levels" in capsys.readouterr().out

@@ -6,6 +6,10 @@ learner's `TrainState` (parameters, optimiser state, update count) and the loop'
 `save` returns and the next (donating) update cannot race it. Restoring against the
 structure of a freshly initialised state gives the saved arrays back bit for bit; a checkpoint
 that cannot be restored (a damaged or missing file) is a `CheckpointError` naming its folder.
+
+Each checkpoint also carries orbax `custom_metadata`, a small JSON mapping that says what
+produced it (`ued.run_folder.checkpoint_metadata`: config hash, update, policy version,
+package versions); checkpoints written without it restore all the same, and read back `{}`.
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ from __future__ import annotations
 import logging
 import os
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -47,10 +52,18 @@ class Checkpoints:
     def all(self) -> list[int]:
         return sorted(self._manager.all_steps())
 
-    def save(self, update: int, train_state: Any, key: jax.Array) -> None:
+    def save(self, update: int, train_state: Any, key: jax.Array,
+             metadata: Mapping[str, Any] | None = None) -> None:
+        """Save checkpoint `update`, with `metadata` (JSON values) as its custom metadata."""
         item = {"train_state": train_state, "key": np.asarray(jax.random.key_data(key))}
-        self._manager.save(int(update), args=ocp.args.StandardSave(item))
+        self._manager.save(int(update), args=ocp.args.StandardSave(item),
+                           custom_metadata=dict(metadata) if metadata else None)
         self._manager.wait_until_finished()
+
+    def metadata(self, update: int) -> dict[str, Any]:
+        """The custom metadata of checkpoint `update`; {} for one saved without any."""
+        step = self._manager.metadata(int(update))
+        return dict(getattr(step, "custom_metadata", None) or {})
 
     def restore(self, template: Any, update: int | None = None) -> tuple[Any, jax.Array, int]:
         """(train state, key, update) of checkpoint `update` (default: the newest), with the

@@ -32,6 +32,7 @@ from typing import Any
 
 import yaml
 
+from ued.config_files import resolve_config
 from ued.errors import ConfigError
 from ued.errors import check as _check
 from ued.levels import LevelSpace
@@ -418,8 +419,9 @@ def config_from_dict(data: Any, source: str = "config") -> TrainConfig:
 
 
 def load_config(path: str | Path, overrides: Sequence[str] = ()) -> TrainConfig:
-    """Read a YAML config file and apply `key=value` overrides."""
-    path = Path(path)
+    """Read a YAML config file (a path, or a shipped config's name: `ued.config_files`) and
+    apply `key=value` overrides."""
+    path = resolve_config(path)
     data = apply_overrides(read_config_file(path), overrides, source=str(path))
     return config_from_dict(data, source=str(path))
 

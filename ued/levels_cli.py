@@ -85,7 +85,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     sub = parser.add_subparsers(dest="levels_command", metavar="SUBCOMMAND")
     sub.required = True
     p = sub.add_parser("sample", help="render a grid of generated (or mutated) levels")
-    p.add_argument("config", help="a training config with a levels: section (configs/ued/)")
+    p.add_argument("config", help="a training config with a levels: section (a file, or a "
+                                  "shipped name such as ued/accel_unit)")
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="config overrides")
     p.add_argument("--n", type=int, default=9, help="number of levels (default 9)")
     p.add_argument("--mutate", action="store_true",

@@ -29,7 +29,10 @@ class Progress:
 
     def show(self, update: int, steps: int, steps_per_s: float, eta_s: float,
              win_rate: float, final: bool = False, first_update_s: float | None = None,
-             extra: str = "") -> None:
+             extra: str = "", trained_per_s: float | None = None,
+             explored_per_s: float | None = None) -> None:
+        """`trained_per_s` and `explored_per_s` (UED: env steps that trained the policy, and
+        those played only to score levels) split `steps_per_s`, their sum, on the line."""
         now = time.monotonic()
         if not (self.tty or final or now - self._last >= self.every_s):
             return
@@ -38,7 +41,10 @@ class Progress:
         if first_update_s is not None:
             rate = f"first update {first_update_s:.1f} s (compilation included)"
         else:
-            rate = f"{steps_per_s:,.0f} steps/s  ETA {format_duration(eta_s)}"
+            split = ""
+            if trained_per_s is not None and explored_per_s is not None:
+                split = f" (trained {trained_per_s:,.0f} + explored {explored_per_s:,.0f})"
+            rate = f"{steps_per_s:,.0f} steps/s{split}  ETA {format_duration(eta_s)}"
         line = f"update {update}/{self.total}  {steps:,} steps  {rate}  win {win}"
         if extra:
             line += f"  ({extra})"
@@ -52,28 +58,42 @@ class Progress:
 class ThroughputClock:
     """Wall-clock bookkeeping of a training loop: the first update's seconds (compilation
     included), then env steps/s between reads. Read it only after the device has finished the
-    updates being timed (e.g. after `jax.device_get` of their metrics)."""
+    updates being timed (e.g. after `jax.device_get` of their metrics).
+
+    A UED loop also says how many of its steps trained the policy (`read(done, trained)`); the
+    rate then splits into trained and explored env steps/s (steps played only to score levels:
+    Robust PLR's and ACCEL's new and mutated levels), logged as `time/trained_steps_per_s` and
+    `time/explored_steps_per_s`; `time/steps_per_s` stays their sum. Without `trained` every
+    step trained."""
 
     def __init__(self, start_update: int, steps_per_update: int):
         self.steps_per_update = steps_per_update
         self.first_update_s: float | None = None
-        self._t, self._update = time.perf_counter(), start_update
+        self._t, self._update, self._trained = time.perf_counter(), start_update, None
 
     @property
     def first_pending(self) -> bool:
         return self.first_update_s is None
 
-    def read(self, done: int) -> tuple[dict[str, float], float]:
+    def read(self, done: int, trained: int | None = None) -> tuple[dict[str, float], float]:
         """(metrics to log, steps/s) at update `done`: {"time/first_update_s": s} and NaN on
-        the first read, then {} and the rate since the previous read."""
+        the first read, then the trained (and, given `trained`, explored) steps/s since the
+        previous read and their sum. `trained`: how many of the loop's steps so far trained
+        the policy, counted from any fixed origin."""
         now = time.perf_counter()
         if self.first_update_s is None:
             self.first_update_s = now - self._t
             out, rate = {"time/first_update_s": self.first_update_s}, math.nan
         else:
-            out = {}
-            rate = (done - self._update) * self.steps_per_update / max(now - self._t, 1e-9)
-        self._t, self._update = now, done
+            seconds = max(now - self._t, 1e-9)
+            rate = (done - self._update) * self.steps_per_update / seconds
+            if trained is None or self._trained is None:
+                out = {"time/trained_steps_per_s": rate} if trained is None else {}
+            else:
+                trained_rate = (trained - self._trained) * self.steps_per_update / seconds
+                out = {"time/trained_steps_per_s": trained_rate,
+                       "time/explored_steps_per_s": rate - trained_rate}
+        self._t, self._update, self._trained = now, done, trained
         return out, rate
 
 
@@ -99,7 +119,9 @@ def log_update(writer: SummaryWriter, bar: Progress | None, callback, done: int,
         rate = steps_per_s if math.isfinite(steps_per_s) and steps_per_s > 0 else math.nan
         eta = (num_updates - done) * steps_per_update / rate
         bar.show(done, steps, rate, eta, values.get("episode/win_rate", math.nan), final=last,
-                 first_update_s=values.get("time/first_update_s"), extra=extra)
+                 first_update_s=values.get("time/first_update_s"), extra=extra,
+                 trained_per_s=values.get("time/trained_steps_per_s"),
+                 explored_per_s=values.get("time/explored_steps_per_s"))
     if callback is not None:
         callback(done, train_state, values)
 

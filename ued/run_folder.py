@@ -1,6 +1,7 @@
 """The run folder: one place for its layout, its config, its checkpoints and the policy in them.
 
-`tabx train` makes and fills it, `--resume` continues it, `tabx eval` and `tabx plot` read it:
+`tabx train` makes and fills it, `--resume` continues it, `tabx eval`, `tabx plot` and
+`tabx runs show` read it:
 
     RUN_DIR/            run.dir/<run name>-<YYYYmmdd-HHMMSS>/
       config.yaml       the resolved config (every field, defaults included), written atomically
@@ -12,6 +13,7 @@
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -76,6 +78,55 @@ def open_checkpoints(run_dir: str | Path, config: TrainConfig, create: bool = Tr
                        create=create)
 
 
+def config_hash(config: TrainConfig) -> str:
+    """The sha256 of a resolved config as `config.yaml` holds it (every field, in order)."""
+    return hashlib.sha256(config.to_yaml().encode()).hexdigest()
+
+
+def checkpoint_metadata(config: TrainConfig, update: int, policy_version: int
+                        ) -> dict[str, Any]:
+    """What a checkpoint carries as orbax custom metadata: enough to say, from the checkpoint
+    alone, which config, update and policy produced it, and with which software."""
+    import flax
+    import orbax.checkpoint
+
+    from tabx import __version__
+
+    return {"config_sha256": config_hash(config), "update": int(update),
+            "policy_version": int(policy_version), "algorithm": config.algorithm,
+            "ued_method": config.ued.method, "tabx_ued": __version__, "jax": jax.__version__,
+            "flax": flax.__version__, "orbax_checkpoint": orbax.checkpoint.__version__}
+
+
+def run_summary(run_dir: str | Path) -> str:
+    """`tabx runs show RUN_DIR`: the run's config and each checkpoint's metadata ("no
+    metadata" for checkpoints saved without it)."""
+    run_dir = Path(run_dir)
+    config = read_run_config(run_dir)
+    digest = config_hash(config)
+    method = f", ued {config.ued.method}" if config.ued.enabled else ""
+    lines = [f"{run_dir}", f"  config       {CONFIG_FILE}: {config.algorithm}{method} on "
+                           f"{', '.join(config.env.scenario)}, {config.learner.num_updates} "
+                           f"updates; sha256 {digest[:12]}"]
+    with open_checkpoints(run_dir, config) as checkpoints:
+        updates = checkpoints.all()
+        if not updates:
+            lines.append("  checkpoints  none yet")
+        for update in updates:
+            meta = checkpoints.metadata(update)
+            if not meta:
+                lines.append(f"  checkpoint {update}: no metadata")
+                continue
+            matches = meta.get("config_sha256") == digest
+            same = "= config.yaml" if matches else "differs from config.yaml"
+            lines.append(f"  checkpoint {update}: update {meta.get('update')}, policy version "
+                         f"{meta.get('policy_version')}, config sha256 "
+                         f"{str(meta.get('config_sha256'))[:12]} ({same}); tabx-ued "
+                         f"{meta.get('tabx_ued')}, jax {meta.get('jax')}, flax "
+                         f"{meta.get('flax')}, orbax-checkpoint {meta.get('orbax_checkpoint')}")
+    return "\n".join(lines)
+
+
 @dataclass(frozen=True)
 class TrainedPolicy:
     """A policy loaded from a run folder."""
@@ -115,5 +166,5 @@ def load_policy(run_dir: str | Path, checkpoint: int | None = None) -> TrainedPo
 
 
 __all__ = ["CHECKPOINT_DIR", "CONFIG_FILE", "EVENTS_DIR", "LEVELS_DIR", "SET_ASIDE_DIR",
-           "TrainedPolicy", "create_run_dir", "load_policy", "new_run_dir", "open_checkpoints",
-           "read_run_config"]
+           "TrainedPolicy", "checkpoint_metadata", "config_hash", "create_run_dir",
+           "load_policy", "new_run_dir", "open_checkpoints", "read_run_config", "run_summary"]

@@ -47,7 +47,7 @@ from ued.experiment import learner_for
 from workers.learner import Learner
 from workers.local import UEDRun
 
-DEFAULT_CONFIG = "configs/ued/quickstart.yaml"
+DEFAULT_CONFIG = "ued/quickstart"  # a shipped config (ued.config_files)
 
 
 @dataclass

@@ -27,7 +27,7 @@ import numpy as np
 
 from level_buffer import BufferConfig, InsertResult, LevelBuffer, Replay, Source
 from tabx.files import atomic_write_text
-from tabx.params import LEAF_DEFAULTS, EnvParams
+from tabx.params import EnvParams
 from ued.config import UEDSection
 from ued.levels import LevelGenerator
 
@@ -202,11 +202,9 @@ class LevelService:
         except (OSError, ValueError) as err:
             raise FileNotFoundError(f"{state_path}: unreadable ({err})") from None
         if self.buffer is not None:
-            self.buffer = LevelBuffer.load(folder / f"buffer-{step}.msgpack", self.template,
-                                           LEAF_DEFAULTS)
+            self.buffer = LevelBuffer.load(folder / f"buffer-{step}.msgpack", self.template)
         path = folder / f"learnable-{step}.msgpack"
-        self.learnable = (LevelBuffer.load(path, self.template, LEAF_DEFAULTS)
-                          if path.is_file() else None)
+        self.learnable = LevelBuffer.load(path, self.template) if path.is_file() else None
         return state
 
     def _need_buffer(self) -> LevelBuffer:

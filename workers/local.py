@@ -45,7 +45,7 @@ from ued.experiment import learner_for, scenario_levels, training_levels
 from ued.learners.ppo import PPOLearner
 from ued.levels import LevelGenerator
 from ued.progress import Progress, ThroughputClock, log_update
-from ued.run_folder import EVENTS_DIR, LEVELS_DIR, open_checkpoints
+from ued.run_folder import EVENTS_DIR, LEVELS_DIR, checkpoint_metadata, open_checkpoints
 from ued.suites import load_suite
 from ued.tensorboard import SummaryWriter
 from workers.driver import Callback, Driver
@@ -337,7 +337,8 @@ def train_marl(config: TrainConfig, run_dir: Path, *, resume: bool = False,
                 log_update(writer, bar, callback, done, train_state, metrics,
                            ppo.steps_per_update, rate, num_updates, last)
             if done % config.run.checkpoint_every == 0 or last:
-                checkpoints.save(done, train_state, key)
+                checkpoints.save(done, train_state, key,
+                                 checkpoint_metadata(config, done, policy_version=done))
     finally:
         writer.close()
         checkpoints.close()
@@ -386,15 +387,17 @@ def train_ued(config: TrainConfig, run_dir: Path, *, resume: bool = False,
     counts = run.branch_counts  # restored on resume: the progress line counts the whole run
     try:
         clock = ThroughputClock(start, ppo.steps_per_update)
+        trained = 0  # steps of this call that trained the policy (the clock's split)
         for step in range(start, stop):
             key, k_step = jax.random.split(key)
             branch, metrics, levels = run.step(learner, step, k_step)
             counts[branch] += 1
+            trained += run.curriculum.learns(branch)
             done = step + 1
             last = done == stop
             if clock.first_pending or done % config.run.log_every == 0 or last:
                 metrics = dict(jax.device_get(metrics))  # waits for the step
-                timing, rate = clock.read(done)
+                timing, rate = clock.read(done, trained)
                 metrics.update(timing)
                 metrics.update(run.service.stats())
                 metrics.update(level_summary(levels))
@@ -409,7 +412,8 @@ def train_ued(config: TrainConfig, run_dir: Path, *, resume: bool = False,
                 # The level snapshot first: a checkpoint without one cannot be resumed.
                 run.service.save(levels_dir, done, run.state(learner),
                                  keep=config.run.keep_checkpoints)
-                checkpoints.save(done, learner.train_state, key)
+                checkpoints.save(done, learner.train_state, key,
+                                 checkpoint_metadata(config, done, learner.version))
     finally:
         writer.close()
         checkpoints.close()

@@ -53,7 +53,7 @@ from tabx.files import atomic_write_json
 from ued.config import ConfigError, RaySection, TrainConfig
 from ued.curricula import Branch
 from ued.progress import Progress, ThroughputClock, log_update
-from ued.run_folder import EVENTS_DIR, LEVELS_DIR, open_checkpoints
+from ued.run_folder import EVENTS_DIR, LEVELS_DIR, checkpoint_metadata, open_checkpoints
 from ued.tensorboard import SummaryWriter
 from workers.actors import (
     EvaluatorActor,
@@ -905,6 +905,7 @@ class RayDriver(Driver):
         logged_metrics: dict[str, Any] = {}
         try:
             clock = ThroughputClock(start, ppo.steps_per_update)
+            trained = 0  # steps of this call that train the policy (the clock's split)
             for step in range(start, stop):
                 key, k_step = jax.random.split(key)
                 if asynchronous is None:
@@ -913,6 +914,7 @@ class RayDriver(Driver):
                     branch, metrics, levels = asynchronous.step(step, k_step)
                 counts[branch] += 1
                 run.branch_counts[branch] += 1
+                trained += run.curriculum.learns(branch)
                 done = step + 1
                 last = done == stop
                 chaos.after_step(done, last)
@@ -923,7 +925,7 @@ class RayDriver(Driver):
                     asynchronous.drain()  # a snapshot holds every issued batch's result
                 if clock.first_pending or done % config.run.log_every == 0 or last:
                     values = dict(jax.device_get(logged_metrics))
-                    timing, rate = clock.read(done)
+                    timing, rate = clock.read(done, trained)
                     values.update(timing)
                     values.update(service.stats())
                     if levels is not None:
@@ -954,7 +956,8 @@ class RayDriver(Driver):
                 if checkpoint_due:
                     service.save(str(levels_dir), done, run.state(learner),
                                  config.run.keep_checkpoints)
-                    checkpoints.save(done, learner.train_state, key)
+                    checkpoints.save(done, learner.train_state, key,
+                                     checkpoint_metadata(config, done, learner.version))
             if asynchronous is not None:
                 asynchronous.drain()
                 asynchronous.log_evaluations(writer, stream if progress else None, block=True)

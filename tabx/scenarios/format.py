@@ -119,8 +119,9 @@ HEURISTIC_RANGES: dict[str, Range] = {
     "assassin_speed": Range(0.0, 10.0),
     "ranger_attack_range": Range(0.0, 200.0),
 }
+START_NOISE_RANGE = Range(0.0, 1000.0)  # world units; randomised starts (tabx.starts)
 TOP_KEYS = ("format", "name", "category", "split", "description", "arena", "units", "zones",
-            "physics", "heuristic")
+            "physics", "heuristic", "start_noise", "shuffle_positions")
 UNIT_KEYS = ("unit", "team", "position", "heading", "heading_deg", "overrides")
 ZONE_KEYS = ("type", "centre", "semi_axes", "effect")
 
@@ -179,6 +180,8 @@ class Scenario:
     heuristic: Heuristic = None
     description: str | None = None
     split: str | None = None  # "eval" for the reference's held-out scenarios
+    start_noise: float = 0.0  # randomised starts (tabx.starts); the paper's starts are fixed
+    shuffle_positions: bool = False
 
     @property
     def allies(self) -> list[Unit]:
@@ -221,6 +224,10 @@ class Scenario:
         if self.heuristic is not None:
             out["heuristic"] = {k: v if isinstance(v, str) else dict(v)
                                 for k, v in self.heuristic.items()}
+        if self.start_noise:
+            out["start_noise"] = self.start_noise
+        if self.shuffle_positions:
+            out["shuffle_positions"] = True
         return out
 
     def validate(self) -> Scenario:
@@ -256,6 +263,8 @@ class Scenario:
             heuristic=_heuristic_params(heuristic if heuristic is not None else self.heuristic),
             physics=_physics_params(physics if physics is not None else self.physics, self.arena),
             reward_mode=reward_mode,
+            start_noise=self.start_noise,
+            shuffle_positions=self.shuffle_positions,
         )
 
 
@@ -496,7 +505,8 @@ def level_to_scenario(level: P.EnvParams, name: str = "exported", category: str 
     Stats equal (in float32) to the unit type's defaults are not written as overrides;
     `max_health` only when it differs from `health`, `heals` only when it differs from
     `damage < 0`. Physics and heuristic are written only when they differ from the defaults.
-    The reward mode is not part of a scenario.
+    The reward mode is not part of a scenario; randomised starts are (`start_noise`,
+    `shuffle_positions`), written only when on.
     """
     u = {k: np.asarray(v) for k, v in vars(level.units).items()}
     if u["active"].ndim != 1:
@@ -525,7 +535,9 @@ def level_to_scenario(level: P.EnvParams, name: str = "exported", category: str 
     return Scenario(name=name, category=category, units=tuple(units), zones=tuple(zones),
                     arena=(_f32(arena[0]), _f32(arena[1])),
                     physics=_physics_from_level(level.physics),
-                    heuristic=_heuristic_from_level(level.heuristic), description=description)
+                    heuristic=_heuristic_from_level(level.heuristic), description=description,
+                    start_noise=_f32(np.asarray(level.start_noise)),
+                    shuffle_positions=bool(np.asarray(level.shuffle_positions)))
 
 
 def _physics_from_level(ph: P.PhysicsParams) -> Physics:
@@ -696,8 +708,16 @@ def _parse(data: Any) -> Scenario:
     zones = tuple(_parse_zone(z, _join("zones", i), arena) for i, z in enumerate(zones_in))
     physics = _parse_physics(d["physics"]) if "physics" in d else None
     heuristic = _parse_heuristic(d["heuristic"]) if "heuristic" in d else None
+    start_noise = 0.0
+    if "start_noise" in d:
+        start_noise = _number(d["start_noise"], "start_noise", START_NOISE_RANGE)
+    shuffle = d.get("shuffle_positions", False)
+    if not isinstance(shuffle, bool):
+        raise ScenarioError(f"expected true or false, got {_describe(shuffle)}",
+                            "shuffle_positions")
     return Scenario(name=name, category=category, units=units, zones=zones, arena=arena,
-                    physics=physics, heuristic=heuristic, description=description, split=split)
+                    physics=physics, heuristic=heuristic, description=description, split=split,
+                    start_noise=start_noise, shuffle_positions=shuffle)
 
 
 def _f32_slack(*values: float) -> float:

@@ -53,6 +53,7 @@ from tabx.state import EnvState
 from ued.config import PPOConfig
 
 MASKED_LOGIT = -1e10
+START_KEY_STREAM = 0x5741  # folded into a rollout's first keys to draw its start positions
 
 
 @struct.dataclass
@@ -369,7 +370,10 @@ class PPOLearner:
         the envs' columns of them: a data-parallel shard plays its own envs)."""
         env, team = self.env, self.team
         num_envs = levels.reward_mode.shape[0]
-        states = jax.vmap(env.initial_state)(levels)
+        # Each rollout draws its levels' randomised starts (tabx.starts; off by default, when
+        # the start is the level's own) from a stream of its first keys no step consumes.
+        start_keys = jax.vmap(jax.random.fold_in, (0, None))(keys[0], START_KEY_STREAM)
+        states = jax.vmap(env.start_state)(start_keys, levels)
         start_states = states
         observe = jax.vmap(env.observe)
         zeros_f = jnp.zeros(num_envs, jnp.float32)

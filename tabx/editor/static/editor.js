@@ -31,7 +31,7 @@ const $ = (id) => document.getElementById(id);
 const S = {
   meta: null, // GET /api/units
   specs: {}, // unit name -> spec
-  doc: null, // {name, category, description, arena: [w, h], extra: {split, physics, heuristic}}
+  doc: null, // {name, category, description, arena: [w, h], extra: {split, physics, heuristic, start_noise, shuffle_positions}}
   units: [], // {unit, team, x, y, heading, overrides}
   zones: [], // {type, cx, cy, ax, ay, effect}
   grid: { spacing: 4.25, margin: 0 },
@@ -322,11 +322,15 @@ function toScenario() {
   out.zones = S.zones.map((z) => ({ type: z.type, centre: [z.cx, z.cy], semi_axes: [z.ax, z.ay], effect: z.effect }));
   if (d.extra.physics !== undefined) out.physics = d.extra.physics;
   if (d.extra.heuristic !== undefined) out.heuristic = d.extra.heuristic;
+  // Randomised starts are kept as the file has them (not edited here).
+  for (const k of ["start_noise", "shuffle_positions"]) if (d.extra[k] !== undefined) out[k] = d.extra[k];
   return out;
 }
 function fromScenario(data) {
   const extra = {};
-  for (const k of ["split", "physics", "heuristic"]) if (data[k] !== undefined) extra[k] = data[k];
+  for (const k of ["split", "physics", "heuristic", "start_noise", "shuffle_positions"]) {
+    if (data[k] !== undefined) extra[k] = data[k];
+  }
   S.doc = {
     name: data.name, category: data.category, description: data.description || "",
     arena: data.arena ? [data.arena.width, data.arena.height] : [...S.meta.arena_default], extra,

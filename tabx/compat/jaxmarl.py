@@ -1,0 +1,150 @@
+"""`TabxJaxMARLEnv`: the TABX battle as a `jaxmarl.environments.MultiAgentEnv`.
+
+It *is* a JaxMARL environment (a subclass, with JaxMARL's own `Box` / `Discrete` spaces), shaped
+like JaxMARL's SMAX with a scripted enemy (`HeuristicEnemySMAX`), so SMAX code runs on it
+unmodified:
+
+- `reset(key) -> (obs, state)`, `step_env` (one step, no reset) and JaxMARL's own `step`, which
+  resets a finished episode with a fresh `reset` (new randomised start, new sampled level);
+- `obs[agent]` (ego-centric, `obs_size` long) and `obs["world_state"]` (`state_size` long), as
+  SMAX names them; `get_obs(state)`, `get_world_state(state)`, `get_avail_actions(state)`;
+- `num_allies` (the learner's agents), `num_enemies` (the other team's slots), `state_size`;
+- per-agent rewards (the team's) and per-agent `infos` (each of shape `(num_agents,)`), so
+  `SMAXLogWrapper(env)` works without `replace_info=True` and the baseline scripts' reshape of
+  `traj_batch.info` to `(steps, envs, agents)` holds;
+- `name` contains "smax", the hook by which JaxMARL's `CTRolloutManager` (IQL / VDN / QMIX)
+  takes `obs["world_state"]` as the global state, the first agent's reward as the team reward
+  and `get_avail_actions` as the legal actions.
+
+Agents, teams and opponents are those of `tabx.marl.TabxMarlEnv` (which this wraps for its
+levels and controllers): `team="ally"` learns the ally slots against `opponent`.
+
+Needs jaxmarl (the `peers` extra); importing this module without it raises ImportError naming
+the extra.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+try:
+    from jaxmarl.environments.multi_agent_env import MultiAgentEnv, State
+    from jaxmarl.environments.spaces import Box, Discrete
+except ImportError as err:  # pragma: no cover - depends on the environment
+    raise ImportError("tabx.compat.jaxmarl needs jaxmarl: pip install 'tabx-ued[peers]' "
+                      f"({err})") from err
+
+from tabx import constants as C
+from tabx.controllers import controlled_actions, with_tiers
+from tabx.env import TabxEnv
+from tabx.marl import TabxMarlEnv
+from tabx.params import EnvConfig, EnvParams
+from tabx.state import EnvState
+
+
+@struct.dataclass
+class TabxJaxMARLState(State):
+    """JaxMARL's `State` (`done`, `step`) with the battle's state and the level it plays."""
+
+    env_state: EnvState
+    level: EnvParams
+
+
+class TabxJaxMARLEnv(MultiAgentEnv):
+    """The TABX battle as a JaxMARL `MultiAgentEnv`; see the module docstring."""
+
+    name = "TABX-SMAX"  # "smax" in the name: CTRolloutManager's SMAX handling applies
+
+    def __init__(self, config: EnvConfig, level: EnvParams | None = None,
+                 level_sampler: Callable[[jax.Array], EnvParams] | None = None,
+                 team: str = "ally", opponent: str = "heuristic:medium"):
+        self.marl = TabxMarlEnv(config, level, level_sampler, team, opponent)
+        super().__init__(num_agents=self.marl.num_agents)
+        self.config = config
+        self.env = TabxEnv(config)
+        self.agents = list(self.marl.agents)
+        self.agent_slots = self.marl.agent_slots
+        self.slots = [int(i) for i in self.agent_slots]  # the agents' unit slots, in order
+        learners = {"ally": config.max_allies, "enemy": config.max_enemies,
+                    "both": config.max_allies}[team]
+        self.num_allies = learners
+        self.num_enemies = config.num_units - learners if team != "both" else config.max_enemies
+        self.obs_size = config.obs_size
+        self.state_size = config.state_size
+        self.num_actions = C.NUM_ACTIONS
+        self.learner_team = C.ENEMY if team == "enemy" else C.ALLY
+        self.observation_spaces = {a: Box(-jnp.inf, jnp.inf, (config.obs_size,))
+                                   for a in self.agents}
+        self.action_spaces = {a: Discrete(C.NUM_ACTIONS) for a in self.agents}
+
+    # --- JaxMARL's interface -----------------------------------------------------------------
+
+    def reset(self, key: jax.Array) -> tuple[dict[str, jax.Array], TabxJaxMARLState]:
+        """A new episode: a level (the fixed one, or the sampler's) and its start drawn from
+        `key` (randomised where the level asks for it)."""
+        key_level, key_start = jax.random.split(key)
+        level = self.marl.level
+        if self.marl.level_sampler is not None:
+            level = with_tiers(self.marl.level_sampler(key_level), self.marl.controllers)
+        env_state = self.env.start_state(key_start, level)
+        state = TabxJaxMARLState(done=jnp.zeros((), bool), step=jnp.zeros((), jnp.int32),
+                                 env_state=env_state, level=level)
+        return self.get_obs(state), state
+
+    def step_env(self, key: jax.Array, state: TabxJaxMARLState, actions: dict[str, jax.Array]
+                 ) -> tuple[dict, TabxJaxMARLState, dict, dict, dict]:
+        """One step of every unit (the agents' actions, the opponent controller's for the
+        rest), without reset; JaxMARL's `step` adds the reset."""
+        key_other, key_step = jax.random.split(key)
+        external = jnp.full((self.config.num_units,), C.IDLE, jnp.int32)
+        chosen = jnp.stack([jnp.asarray(actions[a], jnp.int32) for a in self.agents])
+        external = external.at[self.agent_slots].set(chosen)
+        slot_actions, env_state = controlled_actions(key_other, state.env_state, state.level,
+                                                     external, self.marl.controllers)
+        _, env_state, reward, done, info = self.env.step(key_step, env_state, slot_actions,
+                                                         state.level)
+        state = state.replace(env_state=env_state, done=done, step=env_state.step)
+        teams = [C.ALLY if a.startswith("ally") else C.ENEMY for a in self.agents]
+        rewards = {a: reward[t] for a, t in zip(self.agents, teams, strict=True)}
+        dones = {a: done for a in self.agents}
+        dones["__all__"] = done
+        per_agent = lambda x: jnp.broadcast_to(x, (self.num_agents,))
+        alive = env_state.alive[self.agent_slots]
+        infos = {"won": per_agent(info["won"][self.learner_team]),
+                 "terminated": per_agent(info["terminated"]),
+                 "truncated": per_agent(info["truncated"]),
+                 "alive": alive}
+        return self.get_obs(state), state, rewards, dones, infos
+
+    def get_obs(self, state: TabxJaxMARLState) -> dict[str, jax.Array]:
+        obs = self.env.observe(state.env_state, state.level)
+        out = {a: obs[slot] for a, slot in zip(self.agents, self.slots, strict=True)}
+        out["world_state"] = jax.lax.stop_gradient(self.get_world_state(state))
+        return out
+
+    def get_world_state(self, state: TabxJaxMARLState) -> jax.Array:
+        """The global state (`state_size`,), one per env, as SMAX's `obs["world_state"]`."""
+        return self.env.world_state(state.env_state, state.level)
+
+    def get_avail_actions(self, state: TabxJaxMARLState) -> dict[str, jax.Array]:
+        mask = self.env.action_mask(state.env_state, state.level)
+        return {a: mask[slot] for a, slot in zip(self.agents, self.slots, strict=True)}
+
+    def observation_space(self, agent: str) -> Box:
+        return self.observation_spaces[agent]
+
+    def action_space(self, agent: str) -> Discrete:
+        return self.action_spaces[agent]
+
+    @property
+    def agent_classes(self) -> dict[str, Any]:
+        return {"ally": [a for a in self.agents if a.startswith("ally")],
+                "enemy": [a for a in self.agents if a.startswith("enemy")]}
+
+
+__all__ = ["TabxJaxMARLEnv", "TabxJaxMARLState"]
