@@ -118,5 +118,5 @@ def test_level_files_written_before_randomised_starts_load_with_them_off(level, 
     # Only a template that names the defaults fills them: for any other, a missing leaf is
     # an error naming it.
     with pytest.raises(BufferFileError, match="template leaves missing from the file: "
-                                              r"\['shuffle_positions', 'start_noise'\]"):
+                                              r"\['profile', 'shuffle_positions', 'start_noise'\]"):
         LevelBuffer.load(FIXED_STARTS_FILE, named_leaves(level))
