@@ -136,8 +136,7 @@ def heuristic_actions_from_bits(bits: jax.Array, state: EnvState, params: EnvPar
     side = jnp.where(assassin, -1.0, jnp.where(healer, 0.0, 1.0))
     reach = (u.radius[None, :] + u.radius[:, None]) * side[:, None]  # (N, N)
     move_point = rel + state.facing[None, :, :] * reach[..., None]
-    move_dist2 = jnp.sum(move_point**2, -1)
-    _, chosen, _ = row_argmin(move_dist2, choosable)  # one-hot (N, N)
+    _, chosen, _ = row_argmin(jnp.sum(move_point**2, -1), choosable)  # one-hot (N, N)
     # Everything read at the chosen target in one row selection (one reduction, not four).
     picked = pick_row(jnp.concatenate(
         [move_point, rel, jnp.broadcast_to(u.radius[None, :, None], (n, n, 1)),
@@ -177,9 +176,11 @@ def heuristic_actions_from_bits(bits: jax.Array, state: EnvState, params: EnvPar
 
     # 3c. Kite: a ranger retreats from the nearest candidate inside range x threshold. The
     # reference measures the distance to each candidate's move point and steps back along the
-    # axis of the move toward its target's.
+    # axis of the move toward its target's. (Selecting the offsets, not the distances, keeps
+    # XLA from computing the move points' distances in a kernel of their own.)
     reference_kite = reference(profiles.KITE_MOVE_POINT)
-    dist2 = jnp.where(reference_kite, move_dist2, jnp.sum(rel * rel, -1))
+    threat_rel = jnp.where(reference_kite, move_point, rel)
+    dist2 = jnp.sum(threat_rel * threat_rel, -1)
     _, threat, threatened = row_argmin(dist2, candidates)
     threat_at = pick_row(jnp.concatenate([dist2[..., None], rel], -1), threat)  # (N, 3)
     kite = ranger & threatened & (threat_at[:, 0] < (u.attack_range * threshold) ** 2)
