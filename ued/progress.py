@@ -9,8 +9,10 @@ from __future__ import annotations
 import math
 import sys
 import time
+from collections.abc import Callable
 from typing import Any, TextIO
 
+from tabx.compile_counter import compile_seconds
 from ued.learners.ppo import TrainState
 from ued.tensorboard import SummaryWriter
 
@@ -52,12 +54,24 @@ class Progress:
 class ThroughputClock:
     """Wall-clock bookkeeping of a training loop: the first update's seconds (compilation
     included), then env steps/s between reads. Read it only after the device has finished the
-    updates being timed (e.g. after `jax.device_get` of their metrics)."""
+    updates being timed (e.g. after `jax.device_get` of their metrics).
 
-    def __init__(self, start_update: int, steps_per_update: int):
+    `eta_steps_per_s` is the rate an ETA should use: env steps per second since the first
+    read, leaving out the time spent compiling. A run compiles more than its first update (a
+    UED curriculum's replay and mutation steps are programs of their own, compiled the first
+    time each branch runs); counted in, one such compilation made the first ETA of a
+    4-minute run read 39 minutes. `seconds` and `compile_seconds` (the process's running
+    totals, `tabx.compile_counter.compile_seconds`) can be replaced to test it."""
+
+    def __init__(self, start_update: int, steps_per_update: int,
+                 seconds: Callable[[], float] = time.perf_counter,
+                 compile_seconds: Callable[[], float] = compile_seconds):
         self.steps_per_update = steps_per_update
         self.first_update_s: float | None = None
-        self._t, self._update = time.perf_counter(), start_update
+        self.eta_steps_per_s = math.nan
+        self._seconds, self._compile_seconds = seconds, compile_seconds
+        self._t, self._update = seconds(), start_update
+        self._since: tuple[float, float, int] | None = None  # (time, compile time, update)
 
     @property
     def first_pending(self) -> bool:
@@ -66,13 +80,18 @@ class ThroughputClock:
     def read(self, done: int) -> tuple[dict[str, float], float]:
         """(metrics to log, steps/s) at update `done`: {"time/first_update_s": s} and NaN on
         the first read, then {} and the rate since the previous read."""
-        now = time.perf_counter()
+        now, compiling = self._seconds(), self._compile_seconds()
         if self.first_update_s is None:
             self.first_update_s = now - self._t
             out, rate = {"time/first_update_s": self.first_update_s}, math.nan
+            self._since = (now, compiling, done)
         else:
             out = {}
             rate = (done - self._update) * self.steps_per_update / max(now - self._t, 1e-9)
+            t0, c0, u0 = self._since
+            running = (now - t0) - (compiling - c0)
+            if running > 0:
+                self.eta_steps_per_s = (done - u0) * self.steps_per_update / running
         self._t, self._update = now, done
         return out, rate
 
@@ -88,8 +107,10 @@ def format_duration(seconds: float) -> str:
 
 def log_update(writer: SummaryWriter, bar: Progress | None, callback, done: int,
                train_state: TrainState, metrics: dict[str, Any], steps_per_update: int,
-               steps_per_s: float, num_updates: int, last: bool, extra: str = "") -> None:
-    """One logged update: TensorBoard scalars, the progress line, the callback."""
+               steps_per_s: float, num_updates: int, last: bool, extra: str = "",
+               eta_steps_per_s: float | None = None) -> None:
+    """One logged update: TensorBoard scalars, the progress line (its ETA from
+    `eta_steps_per_s` where given: `ThroughputClock.eta_steps_per_s`), the callback."""
     values = {k: float(v) for k, v in metrics.items()}
     if math.isfinite(steps_per_s):
         values["time/steps_per_s"] = steps_per_s
@@ -97,7 +118,10 @@ def log_update(writer: SummaryWriter, bar: Progress | None, callback, done: int,
     writer.scalars(values, step=steps)
     if bar is not None:
         rate = steps_per_s if math.isfinite(steps_per_s) and steps_per_s > 0 else math.nan
-        eta = (num_updates - done) * steps_per_update / rate
+        eta_rate = rate if eta_steps_per_s is None else eta_steps_per_s
+        if not (math.isfinite(eta_rate) and eta_rate > 0):
+            eta_rate = rate
+        eta = (num_updates - done) * steps_per_update / eta_rate
         bar.show(done, steps, rate, eta, values.get("episode/win_rate", math.nan), final=last,
                  first_update_s=values.get("time/first_update_s"), extra=extra)
     if callback is not None:
