@@ -59,9 +59,9 @@ class ThroughputClock:
     `eta_steps_per_s` is the rate an ETA should use: env steps per second since the first
     read, leaving out the time spent compiling. A run compiles more than its first update (a
     UED curriculum's replay and mutation steps are programs of their own, compiled the first
-    time each branch runs); counted in, one such compilation made the first ETA of a
-    4-minute run read 39 minutes. `seconds` and `compile_seconds` (the process's running
-    totals, `tabx.compile_counter.compile_seconds`) can be replaced to test it."""
+    time each branch runs); counted in, one such compilation can make the first ETA of a
+    few-minute run read ten times too long. `seconds` and `compile_seconds` (the process's
+    running totals, `tabx.compile_counter.compile_seconds`) can be replaced to test it."""
 
     def __init__(self, start_update: int, steps_per_update: int,
                  seconds: Callable[[], float] = time.perf_counter,
