@@ -9,8 +9,10 @@ from __future__ import annotations
 import math
 import sys
 import time
+from collections.abc import Callable
 from typing import Any, TextIO
 
+from tabx.compile_counter import compile_seconds
 from ued.learners.ppo import TrainState
 from ued.tensorboard import SummaryWriter
 
@@ -64,12 +66,24 @@ class ThroughputClock:
     rate then splits into trained and explored env steps/s (steps played only to score levels:
     Robust PLR's and ACCEL's new and mutated levels), logged as `time/trained_steps_per_s` and
     `time/explored_steps_per_s`; `time/steps_per_s` stays their sum. Without `trained` every
-    step trained."""
+    step trained.
 
-    def __init__(self, start_update: int, steps_per_update: int):
+    `eta_steps_per_s` is the rate an ETA should use: env steps per second since the first
+    read, leaving out the time spent compiling. A run compiles more than its first update (a
+    UED curriculum's replay and mutation steps are programs of their own, compiled the first
+    time each branch runs); counted in, one such compilation can make the first ETA of a
+    few-minute run read ten times too long. `seconds` and `compile_seconds` (the process's
+    running totals, `tabx.compile_counter.compile_seconds`) can be replaced to test it."""
+
+    def __init__(self, start_update: int, steps_per_update: int,
+                 seconds: Callable[[], float] = time.perf_counter,
+                 compile_seconds: Callable[[], float] = compile_seconds):
         self.steps_per_update = steps_per_update
         self.first_update_s: float | None = None
-        self._t, self._update, self._trained = time.perf_counter(), start_update, None
+        self.eta_steps_per_s = math.nan
+        self._seconds, self._compile_seconds = seconds, compile_seconds
+        self._t, self._update, self._trained = seconds(), start_update, None
+        self._since: tuple[float, float, int] | None = None  # (time, compile time, update)
 
     @property
     def first_pending(self) -> bool:
@@ -80,10 +94,11 @@ class ThroughputClock:
         the first read, then the trained (and, given `trained`, explored) steps/s since the
         previous read and their sum. `trained`: how many of the loop's steps so far trained
         the policy, counted from any fixed origin."""
-        now = time.perf_counter()
+        now, compiling = self._seconds(), self._compile_seconds()
         if self.first_update_s is None:
             self.first_update_s = now - self._t
             out, rate = {"time/first_update_s": self.first_update_s}, math.nan
+            self._since = (now, compiling, done)
         else:
             seconds = max(now - self._t, 1e-9)
             rate = (done - self._update) * self.steps_per_update / seconds
@@ -93,6 +108,10 @@ class ThroughputClock:
                 trained_rate = (trained - self._trained) * self.steps_per_update / seconds
                 out = {"time/trained_steps_per_s": trained_rate,
                        "time/explored_steps_per_s": rate - trained_rate}
+            t0, c0, u0 = self._since
+            running = (now - t0) - (compiling - c0)
+            if running > 0:
+                self.eta_steps_per_s = (done - u0) * self.steps_per_update / running
         self._t, self._update, self._trained = now, done, trained
         return out, rate
 
@@ -108,8 +127,10 @@ def format_duration(seconds: float) -> str:
 
 def log_update(writer: SummaryWriter, bar: Progress | None, callback, done: int,
                train_state: TrainState, metrics: dict[str, Any], steps_per_update: int,
-               steps_per_s: float, num_updates: int, last: bool, extra: str = "") -> None:
-    """One logged update: TensorBoard scalars, the progress line, the callback."""
+               steps_per_s: float, num_updates: int, last: bool, extra: str = "",
+               eta_steps_per_s: float | None = None) -> None:
+    """One logged update: TensorBoard scalars, the progress line (its ETA from
+    `eta_steps_per_s` where given: `ThroughputClock.eta_steps_per_s`), the callback."""
     values = {k: float(v) for k, v in metrics.items()}
     if math.isfinite(steps_per_s):
         values["time/steps_per_s"] = steps_per_s
@@ -117,7 +138,10 @@ def log_update(writer: SummaryWriter, bar: Progress | None, callback, done: int,
     writer.scalars(values, step=steps)
     if bar is not None:
         rate = steps_per_s if math.isfinite(steps_per_s) and steps_per_s > 0 else math.nan
-        eta = (num_updates - done) * steps_per_update / rate
+        eta_rate = rate if eta_steps_per_s is None else eta_steps_per_s
+        if not (math.isfinite(eta_rate) and eta_rate > 0):
+            eta_rate = rate
+        eta = (num_updates - done) * steps_per_update / eta_rate
         bar.show(done, steps, rate, eta, values.get("episode/win_rate", math.nan), final=last,
                  first_update_s=values.get("time/first_update_s"), extra=extra,
                  trained_per_s=values.get("time/trained_steps_per_s"),

@@ -335,7 +335,8 @@ def train_marl(config: TrainConfig, run_dir: Path, *, resume: bool = False,
                 timing, rate = clock.read(done)
                 metrics.update(timing)
                 log_update(writer, bar, callback, done, train_state, metrics,
-                           ppo.steps_per_update, rate, num_updates, last)
+                           ppo.steps_per_update, rate, num_updates, last,
+                           eta_steps_per_s=clock.eta_steps_per_s)
             if done % config.run.checkpoint_every == 0 or last:
                 checkpoints.save(done, train_state, key,
                                  checkpoint_metadata(config, done, policy_version=done))
@@ -405,7 +406,8 @@ def train_ued(config: TrainConfig, run_dir: Path, *, resume: bool = False,
                     metrics["sfl/scoring_env_steps"] = float(run.sfl_scoring_steps)
                 log_update(writer, bar, callback, done, learner.train_state, metrics,
                            ppo.steps_per_update, rate, total, last,
-                           extra=branch_text(counts, run.service.buffer_size()))
+                           extra=branch_text(counts, run.service.buffer_size()),
+                           eta_steps_per_s=clock.eta_steps_per_s)
             if run.evaluators and (done % config.ued.eval_every == 0 or last):
                 run.evaluate(learner, writer, done, stream if progress else None)
             if done % config.run.checkpoint_every == 0 or last:

@@ -940,7 +940,8 @@ class RayDriver(Driver):
                             len(workers.explorers), len(asynchronous.pending)))
                         extra = asynchronous.stats.text(len(workers.explorers), buffer_size)
                     log_update(writer, bar, None, done, None, values, ppo.steps_per_update,
-                               rate, total, last, extra=extra)
+                               rate, total, last, extra=extra,
+                               eta_steps_per_s=clock.eta_steps_per_s)
                     record.update(steps=[start, done], env_steps_per_s=rate,
                                   buffer_size=buffer_size, **schedule_fields())
                     if callback is not None:

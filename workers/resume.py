@@ -134,11 +134,21 @@ def restore_intact(run_dir: Path, checkpoints: Checkpoints, template: Any, *,
                       f"{', '.join(map(str, steps))}): {problems[0]}")
 
 
+def _checkpoint_step(name: str) -> int | None:
+    """The step of a checkpoint folder: `<step>`, or orbax's temporary `<step>.orbax-checkpoint-
+    tmp-<n>` that a process killed while saving leaves behind."""
+    head, _, rest = name.partition(".")
+    if head.isdigit() and (not rest or rest.startswith("orbax-checkpoint-tmp")):
+        return int(head)
+    return None
+
+
 def set_aside(run_dir: Path, step: int, stream: TextIO | None) -> Path | None:
     """Move the checkpoints and snapshots of steps after `step` to `RUN_DIR/set-aside/<time>/`
     (kept for inspection: a resumed run writes those steps again)."""
     newer = [p for p in sorted((run_dir / CHECKPOINT_DIR).glob("*"))
-             if p.is_dir() and p.name.isdigit() and int(p.name) > step]
+             if p.is_dir() and _checkpoint_step(p.name) is not None
+             and _checkpoint_step(p.name) > step]
     levels_dir = run_dir / LEVELS_DIR
     if levels_dir.is_dir():
         for path in sorted(levels_dir.iterdir()):
