@@ -39,7 +39,7 @@ def test_eta_rate_leaves_compilation_out():
     assert math.isnan(clock.eta_steps_per_s)  # nothing to estimate from yet
     t.run(1.0, compiling=30.0)  # update 2: another program compiled (a replay step, say)
     timing, rate = clock.read(2)
-    assert timing == {} and rate == 100 / 31.0  # the logged throughput is wall-clock
+    assert timing == {"time/trained_steps_per_s": rate} and rate == 100 / 31.0  # wall-clock
     assert clock.eta_steps_per_s == 100 / 1.0  # the ETA's rate is not
     for update in range(3, 6):
         t.run(2.0)

@@ -8,23 +8,30 @@ import math
 
 import pytest
 
-from ued import progress
 from ued.progress import Progress, ThroughputClock
 
 
-@pytest.fixture
-def clock_at(monkeypatch):
-    """Set the clock's notion of now (seconds)."""
-    now = [0.0]
-    monkeypatch.setattr(progress.time, "perf_counter", lambda: now[0])
+class FakeNow:
+    """A clock's notion of now (seconds), set by calling it; no compilation happens."""
 
-    def set_now(seconds: float) -> None:
-        now[0] = seconds
-    return set_now
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self, seconds: float) -> None:
+        self.now = seconds
+
+    def clock(self, start_update: int, steps_per_update: int) -> ThroughputClock:
+        return ThroughputClock(start_update, steps_per_update, seconds=lambda: self.now,
+                               compile_seconds=lambda: 0.0)
+
+
+@pytest.fixture
+def clock_at():
+    return FakeNow()
 
 
 def test_ued_rate_splits_into_trained_and_explored(clock_at):
-    clock = ThroughputClock(start_update=10, steps_per_update=100)
+    clock = clock_at.clock(start_update=10, steps_per_update=100)
     clock_at(5.0)
     timing, rate = clock.read(11, trained=0)  # the first read: compilation included
     assert timing == {"time/first_update_s": 5.0} and math.isnan(rate)
@@ -39,7 +46,7 @@ def test_ued_rate_splits_into_trained_and_explored(clock_at):
 
 
 def test_marl_rate_is_all_trained(clock_at):
-    clock = ThroughputClock(start_update=0, steps_per_update=10)
+    clock = clock_at.clock(start_update=0, steps_per_update=10)
     clock_at(1.0)
     clock.read(1)
     clock_at(2.0)
