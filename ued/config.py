@@ -2,7 +2,7 @@
 
 A config has six sections and two top-level keys:
 
-    algorithm: mappo          # mappo | ippo
+    algorithm: mappo          # mappo | ippo | mappo_rnd
     seed: 0
     env:     {scenario, team, opponent, max_steps}
     learner: {PPO hyperparameters, num_envs, num_steps, total_timesteps}
@@ -36,7 +36,7 @@ from ued.errors import ConfigError
 from ued.errors import check as _check
 from ued.levels import LevelSpace
 
-ALGORITHMS = ("mappo", "ippo")
+ALGORITHMS = ("mappo", "ippo", "mappo_rnd")
 MATMUL_DTYPES = ("bfloat16", "float32")  # learner.matmul_dtype
 TEAMS = ("ally", "enemy")
 
@@ -94,6 +94,16 @@ class PPOConfig:
     # (bfloat16 = JAX's default precision on TPUs; about 1.3x faster updates on an AMX CPU);
     # "float32" for full precision. Parameters, gradients and the optimiser stay float32.
     matmul_dtype: str = "bfloat16"
+    # MAPPO+RND (algorithm mappo_rnd; the paper's table "RND Hyperparameters";
+    # ued/learners/rnd.py). Other algorithms refuse values other than these defaults.
+    rnd_reward_coef: float = 0.5  # beta: intrinsic reward = beta * mean((f(s') - g(s'))^2)
+    rnd_gae_coef: float = 0.01  # advantage = extrinsic GAE + rnd_gae_coef * intrinsic GAE
+    rnd_loss_coef: float = 0.01  # predictor loss = rnd_loss_coef * mean squared error
+    rnd_lr: float = 3e-4  # the predictor's Adam
+    rnd_update_epochs: int = 1  # predictor epochs per update (minibatches as PPO's)
+    rnd_hidden_dim: int = 128
+    rnd_output_dim: int = 256
+    rnd_layers: int = 3  # hidden Dense + ReLU layers of the predictor and the target
 
     @property
     def steps_per_update(self) -> int:
@@ -105,7 +115,8 @@ class PPOConfig:
 
     def validate(self, prefix: str = "learner") -> None:
         for name in ("num_envs", "num_steps", "total_timesteps", "hidden_dim", "update_epochs",
-                     "num_minibatches"):
+                     "num_minibatches", "rnd_update_epochs", "rnd_hidden_dim",
+                     "rnd_output_dim", "rnd_layers"):
             value = getattr(self, name)
             _check(value >= 1, f"{prefix}.{name}", f"must be >= 1, got {value}")
         _check(self.num_envs % self.num_minibatches == 0, f"{prefix}.num_minibatches",
@@ -119,11 +130,14 @@ class PPOConfig:
                    f"({self.num_devices} x {self.num_minibatches}) equal parts")
         _check(self.matmul_dtype in MATMUL_DTYPES, f"{prefix}.matmul_dtype",
                f"must be one of {', '.join(MATMUL_DTYPES)}, got {self.matmul_dtype!r}")
-        _check(self.lr > 0, f"{prefix}.lr", f"must be > 0, got {self.lr}")
+        for name in ("lr", "rnd_lr"):
+            value = getattr(self, name)
+            _check(value > 0, f"{prefix}.{name}", f"must be > 0, got {value}")
         for name in ("gamma", "gae_lambda"):
             value = getattr(self, name)
             _check(0.0 <= value <= 1.0, f"{prefix}.{name}", f"must be in [0, 1], got {value}")
-        for name in ("clip_eps", "ent_coef", "vf_coef"):
+        for name in ("clip_eps", "ent_coef", "vf_coef", "rnd_reward_coef", "rnd_gae_coef",
+                     "rnd_loss_coef"):
             value = getattr(self, name)
             _check(value >= 0.0, f"{prefix}.{name}", f"must be >= 0, got {value}")
         _check(self.max_grad_norm > 0, f"{prefix}.max_grad_norm",
@@ -263,6 +277,13 @@ class TrainConfig:
                f"must be one of {', '.join(ALGORITHMS)}, got {self.algorithm!r}")
         self.env.validate()
         self.learner.validate()
+        if self.algorithm != "mappo_rnd":
+            defaults = PPOConfig()
+            for f in dataclasses.fields(PPOConfig):
+                _check(not f.name.startswith("rnd_")
+                       or getattr(self.learner, f.name) == getattr(defaults, f.name),
+                       f"learner.{f.name}", f"RND settings go with algorithm mappo_rnd, not "
+                       f"{self.algorithm}")
         self.run.validate()
         self.ued.validate()
         self.levels.validate()
