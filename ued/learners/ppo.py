@@ -298,6 +298,11 @@ class PPOLearner:
                             ppo.clip_eps, ppo.clip_value, value_count)
         return v_loss, {"loss/value": v_loss}
 
+    def team_value(self, value: jax.Array, alive: jax.Array) -> jax.Array:
+        """The team's value V(s) per env from `act_step`'s value: MAPPO's own, the mean over
+        living agents for per-agent values (IPPO), as in `RolloutStats`."""
+        return value if value.ndim == 1 else team_mean(value, alive)
+
     def label_params(self, params: Any) -> Any:
         """Optimiser labels (one of `param_groups` per leaf): each group has its own gradient
         clipping and Adam state, as the reference's separate actor and critic train states."""

@@ -122,6 +122,10 @@ class MAPPORND(MAPPO):
             self.matmul_dtype)
         return logits.reshape(steps, envs, agents, -1), jnp.concatenate([v_ext, v_int], -1)
 
+    def team_value(self, value: jax.Array, alive: jax.Array) -> jax.Array:
+        """The extrinsic value (the team reward's)."""
+        return value[..., 0]
+
     # --- training ----------------------------------------------------------------------------
 
     def _init(self, key: jax.Array):
