@@ -16,6 +16,7 @@ import json
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from test_learners_helpers import ENV_CONFIG, duel_level, tiny_config
 from test_train_cli import run_cli
 
@@ -63,8 +64,9 @@ def test_value_error_command_json_plot_and_errors(capsys, tmp_path):
     with Checkpoints(run / CHECKPOINT_DIR) as ck:
         ck.save(0, learner_for(config).init(jax.random.key(0)), jax.random.key(0))
     out_json, out_png = tmp_path / "ve.json", tmp_path / "ve.png"
+    # 8 x 4 from 16-step rollouts: the program the training test below compiles too.
     code, text, err = run_cli(capsys, "analyse", "value-error", str(run), "--states", "8",
-                              "--rollouts", "4", "--horizon", "8", "--json", str(out_json),
+                              "--rollouts", "4", "--horizon", "16", "--json", str(out_json),
                               "--plot", str(out_png))
     assert code == 0, err
     assert "mappo_run (mappo)" in text and "duel2a1f" in text
@@ -79,3 +81,21 @@ def test_value_error_command_json_plot_and_errors(capsys, tmp_path):
         target = str(run) if argv else str(tmp_path / "nothing")
         code, _, err = run_cli(capsys, "analyse", "value-error", target, *argv)
         assert code == 2 and words in err and len(err.strip().splitlines()) == 1
+
+
+def test_value_error_is_logged_during_training(tmp_path):
+    from ued.config import ConfigError, config_from_dict
+    from ued.tensorboard import read_scalars
+    from workers.train import train
+
+    config = tiny_config(**{"run.value_error_every": 2, "run.value_error_states": 8,
+                            "run.value_error_rollouts": 4})
+    run = train(config, run_dir=tmp_path / "run", progress=False)
+    scalars = read_scalars(run / "events")
+    steps = [s for s, _ in scalars["value_error/duel2a1f/mean_abs_error"]]
+    assert steps == [2 * config.learner.steps_per_update, 4 * config.learner.steps_per_update]
+    assert all(v >= 0 for _, v in scalars["value_error/duel2a1f/mean_abs_error"])
+    with pytest.raises(ConfigError, match="run.value_error_every: .*plain MARL runs"):
+        config_from_dict({"run": {"value_error_every": 5}, "ued": {"method": "dr"}})
+    with pytest.raises(ConfigError, match="run.value_error_states: must be >= 1"):
+        config_from_dict({"run": {"value_error_states": 0}})

@@ -155,9 +155,17 @@ class RunSection:
     keep_checkpoints: int = 3  # checkpoints kept (the newest)
     log_every: int = 1  # updates between TensorBoard / progress writes
     compile_cache: bool = True  # keep compiled programs on disk (ued/compile_cache.py)
+    # Value error |V - V*| (ued/value_error.py) logged every this many updates of a plain
+    # MARL run, per scenario; 0: never. States x rollouts as the paper's protocol by default.
+    value_error_every: int = 0
+    value_error_states: int = 128
+    value_error_rollouts: int = 128
 
     def validate(self, prefix: str = "run") -> None:
-        for name in ("checkpoint_every", "keep_checkpoints", "log_every"):
+        _check(self.value_error_every >= 0, f"{prefix}.value_error_every",
+               f"must be >= 0 (0: never), got {self.value_error_every}")
+        for name in ("checkpoint_every", "keep_checkpoints", "log_every", "value_error_states",
+                     "value_error_rollouts"):
             value = getattr(self, name)
             _check(value >= 1, f"{prefix}.{name}", f"must be >= 1, got {value}")
         _check("/" not in self.name and "\\" not in self.name, f"{prefix}.name",
@@ -288,6 +296,9 @@ class TrainConfig:
         self.ued.validate()
         self.levels.validate()
         self.ray.validate()
+        _check(not self.run.value_error_every or not self.ued.enabled, "run.value_error_every",
+               "the value error is logged during plain MARL runs (ued.method: none); analyse "
+               "a UED run with tabx analyse value-error")
         _check(not self.ray.enabled or self.ued.enabled, "ray.enabled",
                "the Ray driver runs UED runs (set ued.method); a plain MARL run trains in "
                "one process")
