@@ -92,7 +92,8 @@ def test_two_copies_of_one_policy_give_a_symmetric_table(capsys, tmp_path, ally_
     assert code == 0, err
     assert "ally \\ enemy" in text and "ally#2" in text
     data = json.loads(out.with_name("mirror.json").read_text())
-    assert data["sides"] == ["ally", "ally#2", "random"] and data["episodes"] == EPISODES
+    assert data["allies"] == data["enemies"] == ["ally", "ally#2", "random"]
+    assert data["episodes"] == EPISODES
     cells = data["scenarios"]["mirror2a2a"]
     rate = np.array(cells["win_rate"])
     assert rate.shape == (3, 3) and data["mean"]["win_rate"] == rate.tolist()
@@ -131,14 +132,31 @@ def test_payoff_bad_inputs_are_one_line_errors(capsys, tmp_path, ally_run, mirro
     assert "unknown scenario" in error("--tiers", "idle", "--scenario", "no-such-scenario")
     assert "episodes must be >= 1" in error("--tiers", "idle", "--scenario", mirror_file,
                                             "--episodes", "0")
-    # A policy of a 2 v 1 scenario cannot play the one-slot enemy team.
+    # Policies of another EnvConfig cannot share a table.
     lopsided = tmp_path / "lopsided"
     lopsided.mkdir()
     config = tiny_config()
     (lopsided / CONFIG_FILE).write_text(config.to_yaml())
     with Checkpoints(lopsided / CHECKPOINT_DIR) as ck:
         ck.save(0, learner_for(config).init(jax.random.key(0)), jax.random.key(0))
-    err = error(str(lopsided), "--tiers", "idle", "--scenario", config.env.scenario[0])
-    assert "the enemy team has 1 unit slots, so it cannot play that team" in err
     with pytest.raises(ConfigError, match="trained with"):
         payoff_table([str(ally_run), str(lopsided)], [], [mirror_file], episodes=2)
+    # On unequal teams (2 v 1), a policy trained on the allies plays only the allies: with no
+    # tier and no enemy-trained run, nobody plays the enemies.
+    assert "no side can play the enemy team" in error(str(lopsided), "--scenario",
+                                                      config.env.scenario[0])
+
+
+def test_on_unequal_teams_rows_and_columns_are_the_sides_that_fit(tmp_path, mirror_file):
+    from tabx.controllers import Controller
+    from ued.payoff import payoff_axes
+
+    config = tiny_config()  # 2 archers v 1 farmer
+    ally_policy = load_policy(saved_run(tmp_path / "a", config.env.scenario[0]))
+    enemy_policy = load_policy(saved_run(tmp_path / "e", config.env.scenario[0], team="enemy"))
+    env_config = ally_policy.learner.env_config
+    sides = [ally_policy, enemy_policy, Controller("heuristic", "medium")]
+    assert payoff_axes(sides, env_config) == ([0, 2], [1, 2])
+    # On equal teams every policy plays both.
+    mirror = load_policy(saved_run(tmp_path / "m", mirror_file))
+    assert payoff_axes([mirror, Controller("idle")], MIRROR) == ([0, 1], [0, 1])

@@ -4,15 +4,18 @@
         --scenario crossfire --episodes 64 --out results/payoff_crossfire
     tabx eval payoff runs/mappo_* --suite units-2F1M2Avs2S1K --out results/payoff_units
 
-Every *side* (each run folder given, then each scripted controller of `--tiers`) plays the
-allies against every side on the enemy team, on every scenario (`--scenario`, or the distinct
-scenarios of an evaluation suite, `--suite`; the suite's opponents are not used). A policy
-trained as the allies plays the enemy team through the team swap (`ued.evaluate.seat`), and
-the other way round, so one training run per algorithm fills a whole table; a side trained on
-the enemy team plays the allies the same way. Cell (i, j) of a scenario's matrix is the win
-rate of the allies (row side i) against the enemies (column side j) over `episodes` episodes,
-with its 95 % Wilson interval; a time-out goes to the higher health ratio and a tie to the
-enemies, as everywhere in TABX. The table also reports the mean over scenarios.
+Every *side* (each run folder given, then each scripted controller of `--tiers`) that can
+play the allies plays them against every side that can play the enemies, on every scenario
+(`--scenario`, or the distinct scenarios of an evaluation suite, `--suite`; the suite's
+opponents are not used). A policy plays the team it was trained for and, through the team swap
+(`ued.evaluate.seat`), the other team when that team has as many unit slots as the policy has
+agents: on a scenario with equal teams one run per algorithm fills both axes; on one with
+unequal teams (pingpong is 4 v 1) the rows are the runs trained on the allies and the columns
+those trained on the enemies (`env.team: enemy`), as the paper trains a policy per side.
+Scripted sides play both teams. Cell (i, j) of a scenario's matrix is the win rate of the
+allies (row side i) against the enemies (column side j) over `episodes` episodes, with its
+95 % Wilson interval; a time-out goes to the higher health ratio and a tie to the enemies, as
+everywhere in TABX. The table also reports the mean over scenarios.
 
 The cells run through `ued.evaluate.play`, whose compiled program depends only on which
 learners (network kinds and sizes) sit on each side: a table of runs of one config compiles
@@ -33,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from tabx.errors import UserError
+from tabx.params import EnvConfig
 from ued.config import ConfigError
 
 DEFAULT_EPISODES = 64
@@ -42,14 +46,15 @@ DEFAULT_EPISODES = 64
 class PayoffTable:
     """Ally win rates of every (ally side, enemy side) pairing per scenario."""
 
-    sides: list[str]  # row i / column j label: a run folder's name or a controller
+    allies: list[str]  # row labels: a run folder's name or a controller
+    enemies: list[str]  # column labels
     scenarios: list[str]
     episodes: int
-    wins: np.ndarray  # (S, N, N) int: ally wins of row side i against column side j
+    wins: np.ndarray  # (S, A, E) int: ally wins of row side i against column side j
 
     @property
     def win_rate(self) -> np.ndarray:
-        """(S, N, N) ally win rates."""
+        """(S, A, E) ally win rates."""
         return self.wins / self.episodes
 
     def interval(self) -> tuple[np.ndarray, np.ndarray]:
@@ -60,13 +65,13 @@ class PayoffTable:
         return (bounds[:, 0].reshape(self.wins.shape), bounds[:, 1].reshape(self.wins.shape))
 
     def mean(self) -> np.ndarray:
-        """(N, N) win rates averaged over the scenarios."""
+        """(A, E) win rates averaged over the scenarios."""
         return self.win_rate.mean(axis=0)
 
     def to_json(self) -> dict:
         low, high = self.interval()
         return {
-            "sides": self.sides, "episodes": self.episodes,
+            "allies": self.allies, "enemies": self.enemies, "episodes": self.episodes,
             "layout": "win_rate[i][j]: the ally win rate of row side i (allies) against "
                       "column side j (enemies)",
             "scenarios": {name: {"win_rate": self.win_rate[s].tolist(),
@@ -77,15 +82,15 @@ class PayoffTable:
         }
 
     def format(self) -> str:
-        width = max(8, *(len(s) for s in self.sides)) + 2
+        width = max(8, *(len(s) for s in self.allies + self.enemies)) + 2
         blocks = []
         panels = [(name, self.win_rate[s]) for s, name in enumerate(self.scenarios)]
         if len(self.scenarios) > 1:
             panels.append(("mean over scenarios", self.mean()))
         for name, matrix in panels:
             lines = [f"{name}: ally win rate ({self.episodes} episodes per cell)",
-                     "ally \\ enemy".ljust(width) + "".join(s.rjust(width) for s in self.sides)]
-            for i, side in enumerate(self.sides):
+                     "ally \\ enemy".ljust(width) + "".join(s.rjust(width) for s in self.enemies)]
+            for i, side in enumerate(self.allies):
                 lines.append(side.ljust(width) + "".join(f"{v:.3f}".rjust(width)
                                                          for v in matrix[i]))
             blocks.append("\n".join(lines))
@@ -110,7 +115,7 @@ def payoff_table(run_dirs: list[str], tiers: list[str], scenarios: list[str],
     different EnvConfigs, or a scenario that does not fit them."""
     from tabx.controllers import Controller
     from tabx.scenarios import ScenarioError, config_for, load_named
-    from ued.evaluate import play, seat
+    from ued.evaluate import play
     from ued.run_folder import load_policy
 
     if episodes < 1:
@@ -136,24 +141,47 @@ def payoff_table(run_dirs: list[str], tiers: list[str], scenarios: list[str],
         raise ConfigError(str(err)) from None
     env_config = (policies[0].learner.env_config if policies
                   else config_for(loaded, max_steps=max_steps))
-    for policy in policies:  # every policy on both teams, before any episode runs
-        for team in range(2):
-            seat(policy, team, env_config)
-    n = len(sides)
-    wins = np.zeros((len(loaded), n, n), np.int64)
+    rows, columns = payoff_axes(sides, env_config)
+    labels = side_labels([*run_dirs, *tiers])
+    wins = np.zeros((len(loaded), len(rows), len(columns)), np.int64)
     for s, scenario in enumerate(loaded):
         try:
             level = scenario.to_level(env_config)
         except ScenarioError as err:
             raise ConfigError(f"{err} (the policies' EnvConfig: {env_config})") from None
-        for i in range(n):
-            for j in range(n):
-                cell_seed = seed + (s * n + i) * n + j
-                result = play(env_config, level, sides[i], sides[j], episodes,
+        for i, row in enumerate(rows):
+            for j, column in enumerate(columns):
+                cell_seed = seed + (s * len(rows) + i) * len(columns) + j
+                result = play(env_config, level, sides[row], sides[column], episodes,
                               seed=cell_seed, greedy=greedy)
                 wins[s, i, j] = int(result.won[:, 0].sum())
-    return PayoffTable(side_labels([*run_dirs, *tiers]), [sc.name for sc in loaded], episodes,
-                       wins)
+    return PayoffTable([labels[i] for i in rows], [labels[j] for j in columns],
+                       [sc.name for sc in loaded], episodes, wins)
+
+
+def payoff_axes(sides: list, env_config: EnvConfig) -> tuple[list[int], list[int]]:
+    """(indices of the sides that can play the allies, of those that can play the enemies):
+    scripted sides play both; a policy its own team, and the other one if the slot counts
+    allow (`ued.evaluate.seat`). ConfigError for a policy of another EnvConfig, or when a team
+    has no side."""
+    from tabx.controllers import Controller
+    from ued.evaluate import TEAM_NAMES, seat, team_slots
+
+    axes: tuple[list[int], list[int]] = ([], [])
+    for index, side in enumerate(sides):
+        for team in range(2):
+            if isinstance(side, Controller):
+                axes[team].append(index)
+                continue
+            first, end = team_slots(env_config, team)
+            if team == side.team or end - first == side.learner.num_agents:
+                seat(side, team, env_config)  # raises for another EnvConfig
+                axes[team].append(index)
+    for team in range(2):
+        if not axes[team]:
+            raise ConfigError(f"no side can play the {TEAM_NAMES[team]} team: give a run "
+                              f"trained on it (env.team: {TEAM_NAMES[team]}) or a tier")
+    return axes
 
 
 def plot_payoff(table: PayoffTable, out: str | Path) -> Path:
@@ -170,22 +198,22 @@ def plot_payoff(table: PayoffTable, out: str | Path) -> Path:
     panels = [(name, table.win_rate[s]) for s, name in enumerate(table.scenarios)]
     if len(table.scenarios) > 1:
         panels.append(("mean", table.mean()))
-    n = len(table.sides)
+    n_rows, n_cols = len(table.allies), len(table.enemies)
     cols = min(len(panels), 3)
     rows = math.ceil(len(panels) / cols)
-    size = 1.2 + 0.7 * n
-    fig, axes = plt.subplots(rows, cols, figsize=(size * cols + 1.0, size * rows),
+    width, height = 1.2 + 0.7 * n_cols, 1.2 + 0.7 * n_rows
+    fig, axes = plt.subplots(rows, cols, figsize=(width * cols + 1.0, height * rows),
                              squeeze=False)
     image = None
     for ax, (name, matrix) in zip(axes.ravel(), panels, strict=False):
         image = ax.imshow(matrix, vmin=0.0, vmax=1.0, cmap="RdBu")
         ax.set_title(name, fontsize=9)
-        ax.set_xticks(range(n), table.sides, rotation=45, ha="right", fontsize=7)
-        ax.set_yticks(range(n), table.sides, fontsize=7)
+        ax.set_xticks(range(n_cols), table.enemies, rotation=45, ha="right", fontsize=7)
+        ax.set_yticks(range(n_rows), table.allies, fontsize=7)
         ax.set_xlabel("enemy", fontsize=8)
         ax.set_ylabel("ally", fontsize=8)
-        for i in range(n):
-            for j in range(n):
+        for i in range(n_rows):
+            for j in range(n_cols):
                 value = matrix[i, j]
                 ax.text(j, i, f"{value:.2f}", ha="center", va="center", fontsize=7,
                         color="white" if abs(value - 0.5) > 0.3 else "black")
