@@ -115,10 +115,11 @@ def seat(policy: TrainedPolicy, team: int, env_config: EnvConfig) -> tuple[int, 
                           f"this evaluation needs {env_config}")
     first, end = team_slots(env_config, team)
     if end - first != policy.learner.num_agents:
+        agents, slots = policy.learner.num_agents, end - first
         raise ConfigError(f"{policy.run_dir} was trained as the {TEAM_NAMES[policy.team]} "
-                          f"team ({policy.learner.num_agents} agents); the "
-                          f"{TEAM_NAMES[team]} team has {end - first} unit slots, so it cannot "
-                          f"play that team")
+                          f"team ({agents} agent{'s' * (agents != 1)}); the "
+                          f"{TEAM_NAMES[team]} team has {slots} unit slot{'s' * (slots != 1)}, "
+                          f"so it cannot play that team")
     return first, end
 
 

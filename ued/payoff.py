@@ -186,14 +186,12 @@ def payoff_axes(sides: list, env_config: EnvConfig) -> tuple[list[int], list[int
 
 def plot_payoff(table: PayoffTable, out: str | Path) -> Path:
     """Heatmaps of the table (one panel per scenario, then the mean), written atomically."""
-    import io
-
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from tabx.files import atomic_write_bytes
+    from ued.plot import save_figure
 
     panels = [(name, table.win_rate[s]) for s, name in enumerate(table.scenarios)]
     if len(table.scenarios) > 1:
@@ -220,10 +218,7 @@ def plot_payoff(table: PayoffTable, out: str | Path) -> Path:
     for ax in axes.ravel()[len(panels):]:
         ax.axis("off")
     fig.colorbar(image, ax=axes.ravel().tolist(), shrink=0.8, label="ally win rate")
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=120, bbox_inches="tight")
-    plt.close(fig)
-    return atomic_write_bytes(out, buffer.getvalue())
+    return save_figure(fig, out, bbox_inches="tight")
 
 
 def cmd_payoff(args: argparse.Namespace) -> int:

@@ -206,14 +206,12 @@ def analyse_runs(run_dirs: list[str], scenarios: list[str] | None, states: int,
 
 def plot_value_errors(records: list[dict], out: str | Path) -> Path:
     """Grouped bars: per scenario, one bar per run (mean |V - V*| and its 95 % interval)."""
-    import io
-
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from tabx.files import atomic_write_bytes
+    from ued.plot import save_figure
 
     scenarios = list(dict.fromkeys(r["scenario"] for r in records))
     runs = list(dict.fromkeys(r["run"] for r in records))
@@ -234,10 +232,7 @@ def plot_value_errors(records: list[dict], out: str | Path) -> Path:
     ax.set_ylabel("mean |V - V*|")
     ax.set_title("value estimation error (95 % intervals over states)", fontsize=9)
     ax.legend(fontsize=7)
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=120, bbox_inches="tight")
-    plt.close(fig)
-    return atomic_write_bytes(out, buffer.getvalue())
+    return save_figure(fig, out, bbox_inches="tight")
 
 
 def cmd_value_error(args: argparse.Namespace) -> int:
