@@ -99,3 +99,21 @@ def test_value_error_is_logged_during_training(tmp_path):
         config_from_dict({"run": {"value_error_every": 5}, "ued": {"method": "dr"}})
     with pytest.raises(ConfigError, match="run.value_error_states: must be >= 1"):
         config_from_dict({"run": {"value_error_states": 0}})
+
+
+def test_the_plot_pools_runs_of_an_algorithm_as_mean_and_standard_error():
+    from ued.value_error import group_records
+
+    record = lambda run, alg, scenario, error, ci: {
+        "run": run, "algorithm": alg, "scenario": scenario, "mean_abs_error": error,
+        "ci95": ci}
+    records = [record("r/m0", "mappo", "clover", 0.1, 0.01),
+               record("r/m1", "mappo", "clover", 0.3, 0.02),
+               record("r/i0", "ippo", "clover", 0.5, 0.03)]
+    bars = {b["label"]: b for b in group_records(records)}
+    assert bars["mappo"]["mean_abs_error"] == pytest.approx(0.2)
+    assert bars["mappo"]["error_bar"] == pytest.approx(np.std([0.1, 0.3], ddof=1) / np.sqrt(2))
+    assert bars["mappo"]["runs"] == 2
+    assert bars["ippo"]["error_bar"] == 0.03  # one run: its interval over states
+    per_run = group_records(records, by="run")
+    assert [b["label"] for b in per_run] == ["m0 (mappo)", "m1 (mappo)", "i0 (ippo)"]

@@ -204,8 +204,29 @@ def analyse_runs(run_dirs: list[str], scenarios: list[str] | None, states: int,
     return records
 
 
-def plot_value_errors(records: list[dict], out: str | Path) -> Path:
-    """Grouped bars: per scenario, one bar per run (mean |V - V*| and its 95 % interval)."""
+def group_records(records: list[dict], by: str = "algorithm") -> list[dict]:
+    """Bars of the plot: per (group, scenario), the mean of the runs' mean |V - V*| and its
+    error bar. `by="algorithm"` pools the runs of an algorithm (seeds), the error bar then
+    the standard error over runs (the paper's figures: mean and standard error over seeds),
+    or a run's own 95 % interval when it is the only one; `by="run"`: one bar per run."""
+    key = (lambda r: r["algorithm"]) if by == "algorithm" else (
+        lambda r: f"{Path(r['run']).name} ({r['algorithm']})")
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for record in records:
+        groups.setdefault((key(record), record["scenario"]), []).append(record)
+    bars = []
+    for (label, scenario), members in groups.items():
+        errors = np.array([m["mean_abs_error"] for m in members])
+        spread = (float(errors.std(ddof=1) / np.sqrt(errors.size)) if errors.size > 1
+                  else float(members[0]["ci95"]))
+        bars.append({"label": label, "scenario": scenario, "runs": len(members),
+                     "mean_abs_error": float(errors.mean()), "error_bar": spread})
+    return bars
+
+
+def plot_value_errors(records: list[dict], out: str | Path, by: str = "algorithm") -> Path:
+    """Grouped bars: per scenario, one bar per algorithm (or run, `by`); see
+    `group_records`."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -213,24 +234,23 @@ def plot_value_errors(records: list[dict], out: str | Path) -> Path:
 
     from ued.plot import save_figure
 
-    scenarios = list(dict.fromkeys(r["scenario"] for r in records))
-    runs = list(dict.fromkeys(r["run"] for r in records))
-    labels = {run: f"{Path(run).name} ({next(r['algorithm'] for r in records if r['run'] == run)})"
-              for run in runs}
-    width = 0.8 / len(runs)
-    fig, ax = plt.subplots(figsize=(max(4.0, 1.4 * len(scenarios) * max(1, len(runs) / 2)), 3.6))
-    for k, run in enumerate(runs):
-        xs, ys, errs = [], [], []
-        for s, scenario in enumerate(scenarios):
-            match = [r for r in records if r["run"] == run and r["scenario"] == scenario]
-            if match:
-                xs.append(s - 0.4 + (k + 0.5) * width)
-                ys.append(match[0]["mean_abs_error"])
-                errs.append(match[0]["ci95"])
-        ax.bar(xs, ys, width, yerr=errs, capsize=3, label=labels[run])
+    bars = group_records(records, by)
+    scenarios = list(dict.fromkeys(b["scenario"] for b in bars))
+    labels = list(dict.fromkeys(b["label"] for b in bars))
+    width = 0.8 / len(labels)
+    fig, ax = plt.subplots(figsize=(max(4.0, 1.4 * len(scenarios) * max(1, len(labels) / 2)),
+                                    3.6))
+    for k, label in enumerate(labels):
+        mine = {b["scenario"]: b for b in bars if b["label"] == label}
+        xs = [s - 0.4 + (k + 0.5) * width for s, sc in enumerate(scenarios) if sc in mine]
+        shown = [mine[sc] for sc in scenarios if sc in mine]
+        ax.bar(xs, [b["mean_abs_error"] for b in shown], width,
+               yerr=[b["error_bar"] for b in shown], capsize=3, label=label)
     ax.set_xticks(range(len(scenarios)), scenarios)
     ax.set_ylabel("mean |V - V*|")
-    ax.set_title("value estimation error (95 % intervals over states)", fontsize=9)
+    bar = ("standard error over runs, or 95 % interval over states for one run"
+           if by == "algorithm" else "95 % interval over states")
+    ax.set_title(f"value estimation error ({bar})", fontsize=8)
     ax.legend(fontsize=7)
     return save_figure(fig, out, bbox_inches="tight")
 
@@ -263,7 +283,7 @@ def cmd_value_error(args: argparse.Namespace) -> int:
                                       "results": records})
         print(f"wrote {args.json}")
     if args.plot:
-        plot_value_errors(records, args.plot)
+        plot_value_errors(records, args.plot, args.by)
         print(f"wrote {args.plot}")
     return 0
 
@@ -293,8 +313,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--checkpoint", type=int, help="checkpoint of every run (default: newest)")
     p.add_argument("--json", metavar="OUT", help="also write the results as JSON")
     p.add_argument("--plot", metavar="PNG", help="also draw the per-scenario comparison")
+    p.add_argument("--by", choices=("algorithm", "run"), default="algorithm",
+                   help="bars of the plot: one per algorithm, pooling its runs (seeds) as mean "
+                        "and standard error (default), or one per run")
     p.set_defaults(func=cmd_value_error)
 
 
 __all__ = ["ValueErrorEstimate", "add_parser", "analyse_runs", "cmd_value_error",
-           "plot_value_errors", "value_error"]
+           "group_records", "plot_value_errors", "value_error"]
