@@ -165,7 +165,9 @@ class MAPPORND(MAPPO):
     def optimise(self, params, opt_state, batch, key, axis_name=None):
         ppo = self.ppo
         k_ppo, k_rnd = jax.random.split(key)
-        params, ppo_state, aux = super().optimise(params, opt_state["ppo"], batch, k_ppo,
+        # The PPO minibatches need not carry the RND-only entries.
+        ppo_batch = {k: v for k, v in batch.items() if k not in ("next_world", "reward_int")}
+        params, ppo_state, aux = super().optimise(params, opt_state["ppo"], ppo_batch, k_ppo,
                                                   axis_name)
         target = params["rnd"]["target"]
 
