@@ -4,6 +4,8 @@
     tabx buffer ...                                               level_buffer.cli
     tabx levels sample, tabx plot, tabx bench train               ued
     tabx train, tabx eval                                         tabx_ued.run_commands
+    tabx eval payoff                                              ued.payoff
+    tabx analyse value-error                                      ued.value_error
     tabx runs status | buffer                                     tabx_ued.runs_commands
 """
 
@@ -15,7 +17,7 @@ import sys
 from level_buffer import cli as buffer_cli
 from tabx import cli as simulator_cli
 from tabx_ued import run_commands, runs_commands
-from ued import levels_cli, plot
+from ued import levels_cli, payoff, plot, value_error
 from ued.learners.bench import add_train_bench
 from workers.bench import add_ued_bench
 
@@ -27,10 +29,15 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     runs_commands.add_parser(subparsers)
     levels_cli.add_parser(subparsers)
     plot.add_parser(subparsers)
+    value_error.add_parser(subparsers)
+
+
+# `tabx eval WORD ...` routes beside `tabx eval RUN_DIR` (tabx.cli.ROUTES).
+ROUTES = {**simulator_cli.ROUTES, ("eval", "payoff"): payoff.add_route_parser}
 
 
 def main(argv: list[str] | None = None) -> int:
-    return simulator_cli.run(argv, [add_commands])
+    return simulator_cli.run(argv, [add_commands], ROUTES)
 
 
 __all__ = ["add_commands", "main"]

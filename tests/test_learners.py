@@ -298,7 +298,7 @@ def test_rollout_resets_the_policy_hidden_state_when_an_episode_ends():
     params = learner.init(jax.random.key(0)).params
     levels = learner.prepare_levels(tiny_levels())
     rollout = jax.jit(learner.rollout)
-    traj, records, _, _ = rollout(params, levels, jax.random.key(3))
+    traj, records, _ = rollout(params, levels, jax.random.key(3))
     done = np.asarray(traj.done)
     assert done.any(), "the tiny config's episodes (8 steps) must end within the rollout"
     # Replaying the actor over the rollout with resets at episode starts reproduces the
@@ -436,7 +436,7 @@ def test_learner_plays_the_enemy_team():
                            config.learner, "enemy", "random")
     assert learner.slots == slice(2, 3) and learner.num_agents == 1
     params = learner.init(jax.random.key(0)).params
-    traj, _, _, _ = jax.jit(learner.rollout)(params, learner.prepare_levels(tiny_levels()),
+    traj, _, _ = jax.jit(learner.rollout)(params, learner.prepare_levels(tiny_levels()),
                                              jax.random.key(0))
     assert traj.obs.shape[2] == 1
 

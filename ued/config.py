@@ -2,7 +2,7 @@
 
 A config has six sections and two top-level keys:
 
-    algorithm: mappo          # mappo | ippo
+    algorithm: mappo          # mappo | ippo | mappo_rnd
     seed: 0
     env:     {scenario, team, opponent, max_steps, profile}
     learner: {PPO hyperparameters, num_envs, num_steps, total_timesteps}
@@ -38,7 +38,7 @@ from ued.errors import check as _check
 from ued.levels import LevelSpace
 from ued.yaml_reader import read_yaml
 
-ALGORITHMS = ("mappo", "ippo")
+ALGORITHMS = ("mappo", "ippo", "mappo_rnd")
 MATMUL_DTYPES = ("bfloat16", "float32")  # learner.matmul_dtype
 TEAMS = ("ally", "enemy")
 
@@ -101,6 +101,16 @@ class PPOConfig:
     # (bfloat16 = JAX's default precision on TPUs; about 1.3x faster updates on an AMX CPU);
     # "float32" for full precision. Parameters, gradients and the optimiser stay float32.
     matmul_dtype: str = "bfloat16"
+    # MAPPO+RND (algorithm mappo_rnd; the paper's table "RND Hyperparameters";
+    # ued/learners/rnd.py). Other algorithms refuse values other than these defaults.
+    rnd_reward_coef: float = 0.5  # beta: intrinsic reward = beta * mean((f(s') - g(s'))^2)
+    rnd_gae_coef: float = 0.01  # advantage = extrinsic GAE + rnd_gae_coef * intrinsic GAE
+    rnd_loss_coef: float = 0.01  # predictor loss = rnd_loss_coef * mean squared error
+    rnd_lr: float = 3e-4  # the predictor's Adam
+    rnd_update_epochs: int = 1  # predictor epochs per update (minibatches as PPO's)
+    rnd_hidden_dim: int = 128
+    rnd_output_dim: int = 256
+    rnd_layers: int = 3  # hidden Dense + ReLU layers of the predictor and the target
 
     @property
     def steps_per_update(self) -> int:
@@ -112,7 +122,8 @@ class PPOConfig:
 
     def validate(self, prefix: str = "learner") -> None:
         for name in ("num_envs", "num_steps", "total_timesteps", "hidden_dim", "update_epochs",
-                     "num_minibatches"):
+                     "num_minibatches", "rnd_update_epochs", "rnd_hidden_dim",
+                     "rnd_output_dim", "rnd_layers"):
             value = getattr(self, name)
             _check(value >= 1, f"{prefix}.{name}", f"must be >= 1, got {value}")
         _check(self.num_envs % self.num_minibatches == 0, f"{prefix}.num_minibatches",
@@ -126,11 +137,14 @@ class PPOConfig:
                    f"({self.num_devices} x {self.num_minibatches}) equal parts")
         _check(self.matmul_dtype in MATMUL_DTYPES, f"{prefix}.matmul_dtype",
                f"must be one of {', '.join(MATMUL_DTYPES)}, got {self.matmul_dtype!r}")
-        _check(self.lr > 0, f"{prefix}.lr", f"must be > 0, got {self.lr}")
+        for name in ("lr", "rnd_lr"):
+            value = getattr(self, name)
+            _check(value > 0, f"{prefix}.{name}", f"must be > 0, got {value}")
         for name in ("gamma", "gae_lambda"):
             value = getattr(self, name)
             _check(0.0 <= value <= 1.0, f"{prefix}.{name}", f"must be in [0, 1], got {value}")
-        for name in ("clip_eps", "ent_coef", "vf_coef"):
+        for name in ("clip_eps", "ent_coef", "vf_coef", "rnd_reward_coef", "rnd_gae_coef",
+                     "rnd_loss_coef"):
             value = getattr(self, name)
             _check(value >= 0.0, f"{prefix}.{name}", f"must be >= 0, got {value}")
         _check(self.max_grad_norm > 0, f"{prefix}.max_grad_norm",
@@ -148,9 +162,17 @@ class RunSection:
     keep_checkpoints: int = 3  # checkpoints kept (the newest)
     log_every: int = 1  # updates between TensorBoard / progress writes
     compile_cache: bool = True  # keep compiled programs on disk (ued/compile_cache.py)
+    # Value error |V - V*| (ued/value_error.py) logged every this many updates of a plain
+    # MARL run, per scenario; 0: never. States x rollouts as the paper's protocol by default.
+    value_error_every: int = 0
+    value_error_states: int = 128
+    value_error_rollouts: int = 128
 
     def validate(self, prefix: str = "run") -> None:
-        for name in ("checkpoint_every", "keep_checkpoints", "log_every"):
+        _check(self.value_error_every >= 0, f"{prefix}.value_error_every",
+               f"must be >= 0 (0: never), got {self.value_error_every}")
+        for name in ("checkpoint_every", "keep_checkpoints", "log_every", "value_error_states",
+                     "value_error_rollouts"):
             value = getattr(self, name)
             _check(value >= 1, f"{prefix}.{name}", f"must be >= 1, got {value}")
         _check("/" not in self.name and "\\" not in self.name, f"{prefix}.name",
@@ -281,10 +303,20 @@ class TrainConfig:
                f"must be one of {', '.join(ALGORITHMS)}, got {self.algorithm!r}")
         self.env.validate()
         self.learner.validate()
+        if self.algorithm != "mappo_rnd":
+            defaults = PPOConfig()
+            for f in dataclasses.fields(PPOConfig):
+                _check(not f.name.startswith("rnd_")
+                       or getattr(self.learner, f.name) == getattr(defaults, f.name),
+                       f"learner.{f.name}", f"RND settings go with algorithm mappo_rnd, not "
+                       f"{self.algorithm}")
         self.run.validate()
         self.ued.validate()
         self.levels.validate()
         self.ray.validate()
+        _check(not self.run.value_error_every or not self.ued.enabled, "run.value_error_every",
+               "the value error is logged during plain MARL runs (ued.method: none); analyse "
+               "a UED run with tabx analyse value-error")
         _check(not self.ray.enabled or self.ued.enabled, "ray.enabled",
                "the Ray driver runs UED runs (set ued.method); a plain MARL run trains in "
                "one process")

@@ -7,9 +7,13 @@ frozen, so the scan simply runs to the limit). Policies act with their recurrent
 over the episode, sampling from the masked policy (or its argmax with `greedy`).
 
 A policy only plays levels of the EnvConfig it was trained on (its observation size is fixed):
-the scenario is padded into that config, and two policies must share one. Tiers named by a
-controller are written into the level (`with_tiers`); a bare `heuristic` plays the level's own
-heuristic settings.
+the scenario is padded into that config, and two policies must share one. Observations are
+ego-centric, so a policy plays either team: one trained as the allies takes the enemy slots
+(the team swap of `tabx.marl`'s `team="enemy"`) when that team has as many slots as it has
+agents. Tiers named by a controller are written into the level (`with_tiers`); a bare
+`heuristic` plays the level's own heuristic settings. The compiled program depends only on
+the policies' learners, which slots they take, the controllers' kinds and the episode count,
+so a table of many pairings (`ued.payoff`) compiles once per combination of learners.
 
 Results per team: win rate with a 95 % Wilson interval (exactly one team wins an episode: a
 time-out goes to the higher health ratio, ties to the enemy), mean undiscounted return and
@@ -38,7 +42,7 @@ from tabx.intervals import mean_ci, wilson
 from tabx.jit_options import learner_jit
 from tabx.params import EnvConfig, EnvParams, repeat_level
 from ued.config import TEAMS, ConfigError
-from ued.learners.ppo import masked_logits
+from ued.learners.ppo import PPOLearner, masked_logits
 from ued.run_folder import TrainedPolicy, load_policy
 
 TEAM_NAMES = TEAMS  # index = team code (C.ALLY, C.ENEMY)
@@ -76,12 +80,37 @@ class EvalResult:
         return mean_ci(self.lengths.astype(np.float64))
 
 
-def _policy_actions(policy: TrainedPolicy, params: Any, obs: jax.Array, mask: jax.Array,
-                    hidden: Any, key: jax.Array, greedy: bool) -> tuple[jax.Array, Any]:
-    learner = policy.learner
-    x = learner.agent_inputs(obs[:, learner.slots])
+def team_slots(env_config: EnvConfig, team: int) -> tuple[int, int]:
+    """(first, end) unit slots of a team: the allies first, then the enemies."""
+    if team == C.ALLY:
+        return 0, env_config.max_allies
+    return env_config.max_allies, env_config.num_units
+
+
+def seat(policy: TrainedPolicy, team: int, env_config: EnvConfig) -> tuple[int, int]:
+    """The slots `policy` takes when it plays `team`: its own team's, or the other team's
+    (the team swap) if that has as many slots as the policy has agents; ConfigError if not."""
+    if policy.learner.env_config != env_config:
+        raise ConfigError(f"{policy.run_dir} was trained with {policy.learner.env_config}, "
+                          f"this evaluation needs {env_config}")
+    first, end = team_slots(env_config, team)
+    if end - first != policy.learner.num_agents:
+        agents, slots = policy.learner.num_agents, end - first
+        raise ConfigError(f"{policy.run_dir} was trained as the {TEAM_NAMES[policy.team]} "
+                          f"team ({agents} agent{'s' * (agents != 1)}); the "
+                          f"{TEAM_NAMES[team]} team has {slots} unit slot{'s' * (slots != 1)}, "
+                          f"so it cannot play that team")
+    return first, end
+
+
+def _policy_actions(learner: PPOLearner, params: Any, obs: jax.Array, mask: jax.Array,
+                    hidden: Any, key: jax.Array, greedy: bool, slots: tuple[int, int]
+                    ) -> tuple[jax.Array, Any]:
+    """The actions of a policy (its learner and parameters) on the unit `slots` it plays."""
+    take = slice(*slots)
+    x = learner.agent_inputs(obs[:, take])
     hidden, logits = learner.policy_step(params, x, hidden)
-    logits = masked_logits(logits, mask[:, learner.slots])
+    logits = masked_logits(logits, mask[:, take])
     if greedy:
         return jnp.argmax(logits, -1).astype(jnp.int32), hidden
     return jax.random.categorical(key, logits).astype(jnp.int32), hidden
@@ -89,33 +118,41 @@ def _policy_actions(policy: TrainedPolicy, params: Any, obs: jax.Array, mask: ja
 
 def play(env_config: EnvConfig, level: EnvParams, ally: Side, enemy: Side, episodes: int,
          seed: int = 0, greedy: bool = False, record: bool = False) -> EvalResult:
-    """Play `episodes` episodes of one level (EnvParams without a batch axis)."""
+    """Play `episodes` episodes of one level (EnvParams without a batch axis). A policy may
+    play either team (`seat`)."""
     sides = (ally, enemy)
-    for team, side in enumerate(sides):
-        if isinstance(side, TrainedPolicy):
-            if side.learner.env_config != env_config:
-                raise ConfigError(f"{side.run_dir} was trained with {side.learner.env_config}, "
-                                  f"this evaluation needs {env_config}")
-            if side.team != team:
-                raise ConfigError(f"{side.run_dir} was trained as the {TEAM_NAMES[side.team]} "
-                                  f"team; it cannot play the {TEAM_NAMES[team]} team")
+    seats = tuple(seat(s, team, env_config) if isinstance(s, TrainedPolicy) else None
+                  for team, s in enumerate(sides))
     controllers = tuple(Controller("external") if isinstance(s, TrainedPolicy) else s
                         for s in sides)
     level = with_tiers(level, controllers)
-    env = TabxEnv(env_config)
-    policies = [s if isinstance(s, TrainedPolicy) else None for s in sides]
-    params = [p.params if p is not None else None for p in policies]
+    params = [s.params if isinstance(s, TrainedPolicy) else None for s in sides]
     levels = jax.tree.map(jnp.asarray, repeat_level(level, episodes))
+    # The program sees the learners and the controllers' kinds; tiers are data in the level.
+    learners = tuple(s.learner if isinstance(s, TrainedPolicy) else None for s in sides)
+    kinds = tuple(Controller(c.kind) for c in controllers)
+    run = _play_program(env_config, learners, seats, kinds, episodes, greedy, record)
+    won, returns, lengths, trace = jax.device_get(run(params, levels, jax.random.key(seed)))
+    states, infos = trace if record else (None, None)
+    return EvalResult(episodes, np.asarray(won), np.asarray(returns), np.asarray(lengths),
+                      states, infos)
 
+
+@functools.lru_cache(maxsize=32)
+def _play_program(env_config: EnvConfig, learners: tuple, seats: tuple, controllers: tuple,
+                  episodes: int, greedy: bool, record: bool) -> Any:
+    """The compiled episodes of `play` for these static settings (`learners`: per team the
+    (process-cached) learner of its policy or None; `seats`: its slots)."""
+    env = TabxEnv(env_config)
     # Compiled for the networks' matmul dtype (bfloat16 if either policy multiplies in it).
-    dtypes = {p.learner.ppo.matmul_dtype for p in policies if p is not None}
+    dtypes = {learner.ppo.matmul_dtype for learner in learners if learner is not None}
     matmul_dtype = "bfloat16" if "bfloat16" in dtypes else "float32"
 
     @functools.partial(learner_jit, matmul_dtype=matmul_dtype)
     def run(params, levels, key):
         _, states = jax.vmap(env.reset)(jax.random.split(key, episodes), levels)
-        hidden = [p.learner.initial_hidden(episodes) if p is not None else None
-                  for p in policies]
+        hidden = [learner.initial_hidden(episodes) if learner is not None else None
+                  for learner in learners]
         zeros = jnp.zeros((episodes, C.NUM_TEAMS), jnp.float32)
 
         def body(carry, step_key):
@@ -125,12 +162,13 @@ def play(env_config: EnvConfig, level: EnvParams, ally: Side, enemy: Side, episo
             mask = jax.vmap(env.action_mask)(states, levels)
             external = jnp.zeros((episodes, env_config.num_units), jnp.int32)
             hidden = list(hidden)
-            for team, policy in enumerate(policies):
-                if policy is None:
+            for team, learner in enumerate(learners):
+                if learner is None:
                     continue
-                acts, hidden[team] = _policy_actions(policy, params[team], obs, mask,
-                                                     hidden[team], keys[team], greedy)
-                external = external.at[:, policy.learner.slots].set(acts)
+                acts, hidden[team] = _policy_actions(learner, params[team], obs, mask,
+                                                     hidden[team], keys[team], greedy,
+                                                     seats[team])
+                external = external.at[:, slice(*seats[team])].set(acts)
             actions, states_h = jax.vmap(
                 lambda k, s, lv, e: controlled_actions(k, s, lv, e, controllers))(
                 jax.random.split(keys[2], episodes), states, levels, external)
@@ -148,10 +186,7 @@ def play(env_config: EnvConfig, level: EnvParams, ally: Side, enemy: Side, episo
             body, init, jax.random.split(key, env_config.max_steps))
         return states.won, returns, length, trace
 
-    won, returns, lengths, trace = jax.device_get(run(params, levels, jax.random.key(seed)))
-    states, infos = trace if record else (None, None)
-    return EvalResult(episodes, np.asarray(won), np.asarray(returns), np.asarray(lengths),
-                      states, infos)
+    return run
 
 
 def describe(side: Side) -> str:
@@ -176,4 +211,4 @@ def format_result(result: EvalResult, sides: tuple[Side, Side], scenario: str,
 
 
 __all__ = ["TEAM_NAMES", "EvalResult", "Side", "TrainedPolicy", "format_result", "load_policy",
-           "mean_ci", "parse_side", "play", "wilson"]
+           "mean_ci", "parse_side", "play", "seat", "team_slots", "wilson"]

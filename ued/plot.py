@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import math
 from pathlib import Path
+from typing import Any
 
 from tabx.errors import UserError
 
@@ -56,7 +57,6 @@ def plot_runs(runs: dict[str, dict[str, list[tuple[int, float]]]], patterns: lis
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from tabx.files import atomic_write_bytes
 
     all_tags = sorted({tag for scalars in runs.values() for tag in scalars})
     tags: list[str] = []
@@ -84,13 +84,22 @@ def plot_runs(runs: dict[str, dict[str, list[tuple[int, float]]]], patterns: lis
     if len(runs) > 1:
         axes.flat[0].legend(fontsize=8)
     fig.tight_layout()
+    save_figure(fig, out, dpi=100)
+    return tags
+
+
+def save_figure(fig: Any, out: str | Path, dpi: int = 120, **savefig: Any) -> Path:
+    """Write a matplotlib figure as a PNG atomically (temp file, fsync, rename) and close it."""
     import io
 
+    import matplotlib.pyplot as plt
+
+    from tabx.files import atomic_write_bytes
+
     buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=100)
+    fig.savefig(buffer, format="png", dpi=dpi, **savefig)
     plt.close(fig)
-    atomic_write_bytes(out, buffer.getvalue())
-    return tags
+    return atomic_write_bytes(out, buffer.getvalue())
 
 
 def cmd_plot(args: argparse.Namespace) -> int:
@@ -111,4 +120,5 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_plot)
 
 
-__all__ = ["DEFAULT_TAGS", "add_parser", "load_runs", "matching", "plot_runs"]
+__all__ = ["DEFAULT_TAGS", "add_parser", "load_runs", "matching", "plot_runs",
+           "save_figure"]

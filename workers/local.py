@@ -337,6 +337,9 @@ def train_marl(config: TrainConfig, run_dir: Path, *, resume: bool = False,
                 log_update(writer, bar, callback, done, train_state, metrics,
                            ppo.steps_per_update, rate, num_updates, last,
                            eta_steps_per_s=clock.eta_steps_per_s)
+            every = config.run.value_error_every
+            if every and (done % every == 0 or last):
+                log_value_error(config, learner, train_state.params, writer, done)
             if done % config.run.checkpoint_every == 0 or last:
                 checkpoints.save(done, train_state, key,
                                  checkpoint_metadata(config, done, policy_version=done))
@@ -344,6 +347,28 @@ def train_marl(config: TrainConfig, run_dir: Path, *, resume: bool = False,
         writer.close()
         checkpoints.close()
     return run_dir
+
+
+def log_value_error(config: TrainConfig, learner: PPOLearner, params: Any,
+                    writer: SummaryWriter, done: int) -> None:
+    """`value_error/<scenario>/{mean_abs_error,ci95,mc_stderr}` of every scenario of the
+    config after update `done` (`run.value_error_*`; rollouts of `learner.num_steps`). Its
+    keys derive from the seed and the update, never from the training key chain, so logging
+    it does not change the run."""
+    from ued.value_error import value_error
+
+    _, levels = scenario_levels(config)
+    base = jax.random.fold_in(jax.random.key(config.seed), done)
+    for index, (name, level) in enumerate(zip(config.env.scenario, levels, strict=True)):
+        result = value_error(learner, params, learner.prepare_levels(level),
+                             jax.random.fold_in(base, index), config.run.value_error_states,
+                             config.run.value_error_rollouts, config.learner.num_steps,
+                             scenario=name).summary()
+        tag = f"value_error/{Path(name).stem}"
+        writer.scalars({f"{tag}/mean_abs_error": result["mean_abs_error"],
+                        f"{tag}/ci95": result["ci95"],
+                        f"{tag}/mc_stderr": result["mean_mc_stderr"]},
+                       step=done * config.learner.steps_per_update)
 
 
 def train_ued(config: TrainConfig, run_dir: Path, *, resume: bool = False,

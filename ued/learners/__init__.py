@@ -1,6 +1,6 @@
-"""PPO learners with recurrent policies: MAPPO (`ued.learners.mappo`) and IPPO
-(`ued.learners.ippo`), built on `ued.learners.ppo` (rollout, GAE, loss, the jitted update)
-and `ued.learners.networks` (the GRU trunk).
+"""PPO learners with recurrent policies: MAPPO (`ued.learners.mappo`), IPPO
+(`ued.learners.ippo`) and MAPPO+RND (`ued.learners.rnd`), built on `ued.learners.ppo`
+(rollout, GAE, loss, the jitted update) and `ued.learners.networks` (the GRU trunk).
 
     learner = make_learner("mappo", env_config, PPOConfig(), team="ally",
                            opponent="heuristic:medium")
@@ -16,14 +16,15 @@ from ued.config import PPOConfig
 from ued.learners.ippo import IPPO
 from ued.learners.mappo import MAPPO
 from ued.learners.ppo import PPOLearner, RolloutStats, TrainState, cached_learner
+from ued.learners.rnd import MAPPORND
 
-LEARNERS: dict[str, type[PPOLearner]] = {"mappo": MAPPO, "ippo": IPPO}
+LEARNERS: dict[str, type[PPOLearner]] = {"mappo": MAPPO, "ippo": IPPO, "mappo_rnd": MAPPORND}
 
 
 def make_learner(algorithm: str, env_config: EnvConfig, ppo: PPOConfig | None = None,
                  team: str | int = "ally", opponent: str | Controller = "heuristic:medium",
                  cached: bool = True) -> PPOLearner:
-    """A MAPPO or IPPO learner. With `cached` (default) the same arguments give the same
+    """A MAPPO, IPPO or MAPPO+RND learner. With `cached` (default) the same arguments give the same
     learner object in a process, so its compiled update is reused."""
     if algorithm not in LEARNERS:
         raise ValueError(f"unknown algorithm {algorithm!r}; expected one of "
@@ -34,5 +35,5 @@ def make_learner(algorithm: str, env_config: EnvConfig, ppo: PPOConfig | None = 
     return LEARNERS[algorithm](env_config, ppo, team, opponent)
 
 
-__all__ = ["IPPO", "LEARNERS", "MAPPO", "PPOLearner", "RolloutStats", "TrainState",
+__all__ = ["IPPO", "LEARNERS", "MAPPO", "MAPPORND", "PPOLearner", "RolloutStats", "TrainState",
            "make_learner"]

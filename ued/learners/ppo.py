@@ -212,6 +212,7 @@ class PPOLearner:
     name = "ppo"
     centralised = False  # the critic reads the world state (MAPPO)
     param_groups: tuple[str, ...] = ("net",)  # optimiser groups, each clipped on its own
+    frozen_groups: tuple[str, ...] = ()  # parameter groups the PPO optimiser leaves alone
 
     def __init__(self, env_config: EnvConfig, ppo: PPOConfig | None = None,
                  team: str | int = "ally", opponent: str | Controller = "heuristic:medium"):
@@ -270,6 +271,39 @@ class PPOLearner:
         """Values used by GAE (and their bootstrap); see IPPO for dead agents."""
         return values, last_value
 
+    def returns(self, params: Any, traj: Transition, last: Transition
+                ) -> tuple[jax.Array, jax.Array, jax.Array, dict[str, jax.Array]]:
+        """GAE of a rollout: (values as GAE saw them, advantages, value targets, extra
+        (T, E, ...) batch entries for `optimise`). MAPPO: one value and advantage per env;
+        IPPO: per agent, the team reward and done for every agent."""
+        values, last_value = self.value_terms(traj.value, last.value, traj.alive, last.alive)
+        dones, rewards = traj.done, traj.reward
+        if values.ndim == 3:  # per-agent values: the team reward and done for every agent
+            dones, rewards = dones[..., None], rewards[..., None]
+        adv, targets = gae(rewards, values, dones, last_value, self.ppo.gamma,
+                           self.ppo.gae_lambda)
+        return values, adv, targets, {}
+
+    def critic_loss(self, values: jax.Array, batch: dict[str, jax.Array],
+                    valid: jax.Array, count: jax.Array, axis_name: str | None
+                    ) -> tuple[jax.Array, dict[str, jax.Array]]:
+        """The value loss of a minibatch (before `vf_coef`) and its metrics. `valid`,
+        `count`: the valid agent steps and their count over all shards."""
+        ppo = self.ppo
+        if values.ndim == valid.ndim:
+            value_valid, value_count = valid, count
+        else:  # one value per env (MAPPO): every step of the env
+            value_valid = jnp.ones(values.shape, bool)
+            value_count = valid_count(value_valid, axis_name)
+        v_loss = value_loss(values, batch["value"], batch["targets"], value_valid,
+                            ppo.clip_eps, ppo.clip_value, value_count)
+        return v_loss, {"loss/value": v_loss}
+
+    def team_value(self, value: jax.Array, alive: jax.Array) -> jax.Array:
+        """The team's value V(s) per env from `act_step`'s value: MAPPO's own, the mean over
+        living agents for per-agent values (IPPO), as in `RolloutStats`."""
+        return value if value.ndim == 1 else team_mean(value, alive)
+
     def label_params(self, params: Any) -> Any:
         """Optimiser labels (one of `param_groups` per leaf): each group has its own gradient
         clipping and Adam state, as the reference's separate actor and critic train states."""
@@ -297,8 +331,9 @@ class PPOLearner:
             return optax.chain(optax.clip_by_global_norm(ppo.max_grad_norm),
                                optax.adam(lr, eps=ppo.adam_eps))
 
-        return optax.multi_transform({group: tx() for group in self.param_groups},
-                                     self.label_params)
+        transforms = {group: tx() for group in self.param_groups}
+        transforms.update({group: optax.set_to_zero() for group in self.frozen_groups})
+        return optax.multi_transform(transforms, self.label_params)
 
     def init(self, key: jax.Array) -> TrainState:
         """A fresh train state. Jitted: one compilation (1.8 s for MAPPO, and cacheable)
@@ -346,12 +381,13 @@ class PPOLearner:
 
     def rollout(self, params: Any, levels: EnvParams, key: jax.Array,
                 num_steps: int | None = None
-                ) -> tuple[Transition, dict[str, jax.Array], jax.Array, jax.Array]:
+                ) -> tuple[Transition, dict[str, jax.Array], Transition]:
         """Reset every env into its level and play `num_steps` steps (default: the PPO
         config's rollout length).
 
-        Returns (transitions (T, E, ...), per-step episode records (T, E), bootstrap value of
-        the state after the last step, whether each agent is alive there).
+        Returns (transitions (T, E, ...), per-step episode records (T, E), the bootstrap: the
+        observation, world state, value and alive agents of the state after the last step, as
+        a Transition (E, ...) whose action, reward and done are not used).
 
         Each scan step observes the state it acts on (the observation is a function of the
         state; the auto-reset's start states are passed in, so the env step computes none).
@@ -365,7 +401,7 @@ class PPOLearner:
                                       self.rollout_keys(key, num_steps, num_envs))
 
     def rollout_with_keys(self, params: Any, levels: EnvParams, keys: jax.Array
-                          ) -> tuple[Transition, dict[str, jax.Array], jax.Array, jax.Array]:
+                          ) -> tuple[Transition, dict[str, jax.Array], Transition]:
         """`rollout` with its keys given: (num_steps + 1, num_envs) from `rollout_keys` (or
         the envs' columns of them: a data-parallel shard plays its own envs)."""
         env, team = self.env, self.team
@@ -417,9 +453,9 @@ class PPOLearner:
             return carry, (transition, record)
 
         _, (traj, records) = jax.lax.scan(body, carry, keys)
-        last_value, last_alive = traj.value[-1], traj.alive[-1]
+        last = jax.tree.map(lambda x: x[-1], traj)
         traj, records = jax.tree.map(lambda x: x[:-1], (traj, records))
-        return traj, records, last_value, last_alive
+        return traj, records, last
 
     def _loss(self, params: Any, batch: dict[str, jax.Array], axis_name: str | None = None
               ) -> tuple[jax.Array, dict[str, jax.Array]]:
@@ -439,16 +475,10 @@ class PPOLearner:
             adv = normalise(adv, valid, axis_name)
         pg_loss, approx_kl, clip_frac = ppo_policy_loss(logp, batch["logp"], adv, valid,
                                                         ppo.clip_eps, count)
-        if values.ndim == valid.ndim:
-            value_valid, value_count = valid, count
-        else:  # one value per env (MAPPO): every step of the env
-            value_valid = jnp.ones(values.shape, bool)
-            value_count = valid_count(value_valid, axis_name)
-        v_loss = value_loss(values, batch["value"], batch["targets"], value_valid,
-                            ppo.clip_eps, ppo.clip_value, value_count)
+        v_loss, v_metrics = self.critic_loss(values, batch, valid, count, axis_name)
         ent = masked_mean(entropy, valid, count)
         total = pg_loss + ppo.vf_coef * v_loss - ppo.ent_coef * ent
-        return total, {"loss/total": total, "loss/policy": pg_loss, "loss/value": v_loss,
+        return total, {"loss/total": total, "loss/policy": pg_loss, **v_metrics,
                        "loss/entropy": ent, "loss/approx_kl": approx_kl,
                        "loss/clip_frac": clip_frac}
 
@@ -524,25 +554,40 @@ class PPOLearner:
         (params, opt_state, per-minibatch losses, episode records, rollout stats). With
         `axis_name`, one data-parallel shard: minibatches take the same share of every
         shard's envs, and gradients and losses are summed over the shards."""
-        ppo = self.ppo
         num_envs = levels.reward_mode.shape[0]
-        traj, records, last_value, last_alive = self.rollout_with_keys(params, levels, keys)
-        values, last_value = self.value_terms(traj.value, last_value, traj.alive, last_alive)
-        dones = traj.done
-        rewards = traj.reward
-        if values.ndim == 3:  # per-agent values: the team reward and done for every agent
-            dones, rewards = dones[..., None], rewards[..., None]
-        adv, targets = gae(rewards, values, dones, last_value, ppo.gamma, ppo.gae_lambda)
+        traj, records, last = self.rollout_with_keys(params, levels, keys)
+        values, adv, targets, extras = self.returns(params, traj, last)
         stats = self._stats(traj, values, adv)
         starts = jnp.concatenate([jnp.ones((1, num_envs), bool), traj.done[:-1]], axis=0)
         batch = {"obs": traj.obs, "world": traj.world, "mask": traj.mask, "alive": traj.alive,
                  "action": traj.action, "logp": traj.logp, "value": traj.value,
-                 "adv": adv, "targets": targets, "starts": starts}
-        grad_fn = jax.value_and_grad(functools.partial(self._loss, axis_name=axis_name),
-                                     has_aux=True)
+                 "adv": adv, "targets": targets, "starts": starts, **extras}
+        params, opt_state, aux = self.optimise(params, opt_state, batch, key, axis_name)
+        return params, opt_state, aux, records, stats
+
+    def optimise(self, params: Any, opt_state: Any, batch: dict[str, jax.Array],
+                 key: jax.Array, axis_name: str | None = None
+                 ) -> tuple[Any, Any, dict[str, jax.Array]]:
+        """The PPO epochs over a rollout's `batch` (time-major, envs on axis 1): (params,
+        opt_state, per-minibatch losses (epochs, minibatches))."""
+        return self.minibatch_epochs(functools.partial(self._loss, axis_name=axis_name),
+                                     self.optimizer, params, opt_state, batch, key,
+                                     self.ppo.update_epochs, axis_name)
+
+    def minibatch_epochs(self, loss_fn: Any, optimizer: optax.GradientTransformation,
+                         params: Any, opt_state: Any, batch: dict[str, jax.Array],
+                         key: jax.Array, epochs: int, axis_name: str | None = None
+                         ) -> tuple[Any, Any, dict[str, jax.Array]]:
+        """`epochs` passes of `num_minibatches` gradient steps of `loss_fn(params, minibatch)
+        -> (loss, metrics)` over `batch`, split by env (axis 1, all steps of an env in one
+        minibatch). On a data-parallel shard (`axis_name`) the gradients and metrics are
+        summed over the shards. Returns (params, opt_state, metrics (epochs, minibatches)),
+        the metrics with `grad_norm`."""
+        num_envs = batch["starts"].shape[1]
+        grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
         total = (lambda x: x) if axis_name is None else functools.partial(jax.lax.psum,
                                                                            axis_name=axis_name)
-        per_minibatch = num_envs // ppo.num_minibatches
+        minibatches = self.ppo.num_minibatches
         if axis_name is not None:  # each shard its own order of its envs
             key = jax.random.fold_in(key, jax.lax.axis_index(axis_name))
 
@@ -553,16 +598,16 @@ class PPOLearner:
                 (_, aux), grads = grad_fn(params, mb)
                 aux, grads = total((aux, grads))
                 aux["grad_norm"] = optax.tree.norm(grads)
-                updates, opt_state = self.optimizer.update(grads, opt_state, params)
+                updates, opt_state = optimizer.update(grads, opt_state, params)
                 return (optax.apply_updates(params, updates), opt_state), aux
 
-            order = jax.random.permutation(k, num_envs).reshape(ppo.num_minibatches,
-                                                                 per_minibatch)
+            order = jax.random.permutation(k, num_envs).reshape(minibatches,
+                                                                 num_envs // minibatches)
             return jax.lax.scan(minibatch, carry, order)
 
         (params, opt_state), aux = jax.lax.scan(
-            epoch, (params, opt_state), jax.random.split(key, ppo.update_epochs))
-        return params, opt_state, aux, records, stats
+            epoch, (params, opt_state), jax.random.split(key, epochs))
+        return params, opt_state, aux
 
     @staticmethod
     def _stats(traj: Transition, values: jax.Array, adv: jax.Array) -> RolloutStats:
@@ -590,12 +635,8 @@ class PPOLearner:
 
     def _score_envs(self, params: Any, levels: EnvParams, keys: jax.Array
                     ) -> tuple[dict[str, jax.Array], RolloutStats]:
-        traj, records, last_value, last_alive = self.rollout_with_keys(params, levels, keys)
-        values, last_value = self.value_terms(traj.value, last_value, traj.alive, last_alive)
-        dones, rewards = traj.done, traj.reward
-        if values.ndim == 3:
-            dones, rewards = dones[..., None], rewards[..., None]
-        adv, _ = gae(rewards, values, dones, last_value, self.ppo.gamma, self.ppo.gae_lambda)
+        traj, records, last = self.rollout_with_keys(params, levels, keys)
+        values, adv, _, _ = self.returns(params, traj, last)
         return records, self._stats(traj, values, adv)
 
     def score(self, params: Any, levels: EnvParams, key: jax.Array,
