@@ -146,21 +146,22 @@ class RayStepper:
     def __init__(self, ray: Any, config: TrainConfig, stream: TextIO):
         from workers.ray_driver import (
             AsyncRun,
-            Blocking,
             ExplorerPool,
             RemoteLearner,
             start_workers,
         )
+        from workers.ray_restarts import ActorDeaths, RemoteService
 
         self.ray, self.config = ray, config
         self.workers = start_workers(ray, config, stream)
         self.driver = "ray-deterministic" if config.ray.deterministic else "ray"
-        self.run = UEDRun(config, Blocking(ray, self.workers.service),
-                          ExplorerPool(ray, self.workers.scorers()))
+        # One RemoteService for the run and the schedule: it numbers the state-changing calls.
+        service = RemoteService(ray, self.workers.service, ActorDeaths(None))
+        self.run = UEDRun(config, service, ExplorerPool(ray, self.workers.scorers()))
         self.key, k_init = jax.random.split(jax.random.key(config.seed))
         ray.get(self.workers.learner.init.remote(k_init))
         self.learner = RemoteLearner(ray, self.workers.learner)
-        self.schedule = AsyncRun(ray, config, self.run, self.learner, self.workers)
+        self.schedule = AsyncRun(ray, config, self.run, self.learner, self.workers, service)
         self.index = 0
 
     def step(self) -> Any:

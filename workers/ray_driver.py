@@ -294,17 +294,6 @@ def wait_until_ready(ray: Any, workers: Workers, stream: TextIO,
 # --- the deterministic mode: the local step logic over blocking calls -------------------------
 
 
-class Blocking:
-    """An actor behind the interface of the local object it wraps: every call waits."""
-
-    def __init__(self, ray: Any, actor: Any):
-        self._ray, self._actor = ray, actor
-
-    def __getattr__(self, name: str) -> Any:
-        method = getattr(self._actor, name)
-        return lambda *args, **kwargs: self._ray.get(method.remote(*args, **kwargs))
-
-
 class RemoteLearner:
     """The learner actor behind `workers.learner.Learner`'s interface, with the policy version
     counted here and the parameters fetched once per version (a ref owned by the driver)."""
@@ -499,15 +488,14 @@ class AsyncRun:
     """The asynchronous schedule over the actors of one run (see the module doc)."""
 
     def __init__(self, ray: Any, config: TrainConfig, run: UEDRun, learner: RemoteLearner,
-                 workers: Workers, deaths: ActorDeaths | None = None,
-                 service: RemoteService | None = None):
+                 workers: Workers, service: RemoteService, deaths: ActorDeaths | None = None):
         self.ray, self.config, self.run, self.learner, self.workers = (ray, config, run,
                                                                        learner, workers)
         self.scorers = workers.scorers()
         self.names = workers.scorer_names()
         self.deaths = ActorDeaths(None) if deaths is None else deaths
-        self.service = (RemoteService(ray, workers.service, self.deaths) if service is None
-                        else service)
+        # The run's service too: one numbering of the state-changing calls per actor.
+        self.service = service
         self.service.on_restart.append(self.ask_again_for_lost_levels)
         self.pending: dict[Any, Batch] = {}
         self.inflight = [0] * len(self.scorers)
@@ -880,7 +868,7 @@ class RayDriver(Driver):
                       learner_gpus=workers.gpus, placement=placement, steps=[start, start],
                       total_steps=total)
         asynchronous = None if deterministic else AsyncRun(ray, config, run, learner, workers,
-                                                           deaths, service)
+                                                           service, deaths)
         chaos = Chaos(ray, config.ray, list(zip(workers.names(), workers.all(), strict=True)),
                       stream)
 
