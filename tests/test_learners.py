@@ -463,7 +463,7 @@ def test_config_defaults_are_the_papers():
      "learner.num_devices"),
     ({"env": {"team": "blue"}}, "env.team"),
     ({"env": {"opponent": "heuristic:godlike"}}, "env.opponent"),
-    ({"algorithm": "qmix"}, "algorithm"),
+    ({"algorithm": "dqn"}, "algorithm"),
     ({"run": {"checkpoint_every": 0}}, "run.checkpoint_every"),
     ({"learner": {"anneal_lr": "yes"}}, "learner.anneal_lr"),
     ({"env": ["crossfire"]}, "env"),

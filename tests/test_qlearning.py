@@ -15,6 +15,7 @@ from test_learners_helpers import ENV_CONFIG, TINY, duel_level, scenario_file
 
 from tabx.params import repeat_level
 from ued.config import (
+    Q_LEARNER_SETTINGS,
     ConfigError,
     PPOConfig,
     QLearningConfig,
@@ -43,19 +44,19 @@ def tiny_q_config(algorithm: str, tmp_dir: str = "runs", overrides: dict | None 
 # --- mixers ----------------------------------------------------------------------------------
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=20, deadline=None)
 @given(agents=st.integers(1, 6), seed=st.integers(0, 2**31 - 1))
 def test_vdn_is_the_sum_of_the_agent_values(agents, seed):
     learner = make_learner("vdn", ENV_CONFIG, PPOConfig(num_envs=4, num_steps=8, hidden_dim=8),
                            q=QLearningConfig(buffer_size=8, batch_size=4))
     q = jax.random.normal(jax.random.key(seed), (5, 3, agents)) * 10
-    np.testing.assert_allclose(learner.mix(None, q, jnp.zeros((5, 3, 0))), q.sum(-1),
+    np.testing.assert_allclose(learner.mix(None, q, None), q.sum(-1),
                                rtol=1e-6)
 
 
-@settings(max_examples=25, deadline=None)
-@given(agents=st.integers(1, 5), state_dim=st.integers(1, 12), seed=st.integers(0, 2**31 - 1),
-       init_scale=st.sampled_from([0.001, 1.0, 10.0]))
+@settings(max_examples=20, deadline=None)
+@given(agents=st.sampled_from([1, 3, 6]), state_dim=st.sampled_from([1, 12]),
+       seed=st.integers(0, 2**31 - 1), init_scale=st.sampled_from([0.001, 1.0, 10.0]))
 def test_qmix_mixing_weights_are_non_negative_and_q_tot_is_monotonic(agents, state_dim, seed,
                                                                       init_scale):
     k_init, k_state, k_q, k_noise = jax.random.split(jax.random.key(seed), 4)
@@ -138,8 +139,9 @@ def test_every_q_config_file_loads_with_the_paper_settings():
     assert {f.name.split("_")[0] for f in q_files} == set(Q_ALGORITHMS)
     for path in q_files:
         config = load_config(path)
-        assert config.learner.lr == 5e-5 and config.learner.hidden_dim == 512
-        assert config.learner.update_epochs == 8 and config.learner.num_envs == 128
+        for name, value in Q_LEARNER_SETTINGS.items():
+            assert getattr(config.learner, name) == value, (path, name)
+        assert config.learner.num_envs == 128 and config.learner.num_steps == 512
         assert config.qlearning == QLearningConfig()  # the defaults are the paper's
 
 

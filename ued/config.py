@@ -189,6 +189,11 @@ class QLearningConfig:
 
 
 MIXER_FIELDS = ("mixer_embed_dim", "mixer_hidden_dim", "mixer_init_scale")
+# The paper's `learner` settings of the Q-learners (table "IQL and QMIX Hyperparameters"; the
+# reference's gradient clipping, RAdam epsilon and constant learning rate), where they differ
+# from PPO's defaults: configs/marl/{iql,vdn,qmix}_*.yaml and `tabx bench train` use them.
+Q_LEARNER_SETTINGS = {"lr": 5e-5, "anneal_lr": False, "hidden_dim": 512, "max_grad_norm": 10.0,
+                      "adam_eps": 1e-8, "update_epochs": 8}
 
 
 @dataclass(frozen=True)
@@ -552,7 +557,8 @@ def apply_overrides(data: Any, overrides: Sequence[str], source: str = "config")
     return out
 
 
-__all__ = ["ALGORITHMS", "PPO_ALGORITHMS", "Q_ALGORITHMS", "TEAMS", "UED_METHODS", "UED_SCORES",
+__all__ = ["ALGORITHMS", "PPO_ALGORITHMS", "Q_ALGORITHMS", "Q_LEARNER_SETTINGS",
+           "TEAMS", "UED_METHODS", "UED_SCORES",
            "ConfigError", "EnvSection", "PPOConfig", "QLearningConfig", "RaySection",
            "RunSection", "TrainConfig", "UEDSection", "apply_overrides", "config_from_dict",
            "load_config"]

@@ -90,7 +90,7 @@ class Trajectory:
     """One env's rollout as stored in the replay buffer (leading axis: time)."""
 
     obs: jax.Array  # (T, A, obs_size) without the agent id
-    world: jax.Array  # (T, state_size) for QMIX, (T, 0) otherwise
+    world: jax.Array | None  # (T, state_size) for QMIX, None otherwise (nothing stored)
     mask: jax.Array  # (T, A, 8) legal actions
     alive: jax.Array  # (T, A)
     action: jax.Array  # (T, A) int32
@@ -230,8 +230,9 @@ class QLearner(PPOLearner):
         action = jnp.where(explored, random, greedy).astype(jnp.int32)
         return hidden, action, jnp.zeros(action.shape, jnp.float32), pick(q, greedy)
 
-    def mix(self, params: Any, q: jax.Array, world: jax.Array) -> jax.Array:
-        """Q_tot (...) of agent values q (..., A) (zero for dead agents) and world states."""
+    def mix(self, params: Any, q: jax.Array, world: jax.Array | None) -> jax.Array:
+        """Q_tot (...) of agent values q (..., A) (zero for dead agents) and world states
+        (..., S) (QMIX; None for VDN)."""
         if self.mixer == "vdn":
             return mixers.vdn(q)
         return mixers.qmix(params["mixer"], q, world)
@@ -256,7 +257,7 @@ class QLearner(PPOLearner):
         T, A = self.ppo.num_steps, self.num_agents
         item = Trajectory(
             obs=jnp.zeros((T, A, self.env_config.obs_size), jnp.float32),
-            world=jnp.zeros((T, self.state_dim if self.centralised else 0), jnp.float32),
+            world=jnp.zeros((T, self.state_dim), jnp.float32) if self.centralised else None,
             mask=jnp.zeros((T, A, C.NUM_ACTIONS), bool), alive=jnp.zeros((T, A), bool),
             action=jnp.zeros((T, A), jnp.int32), reward=jnp.zeros(T, jnp.float32),
             done=jnp.zeros(T, bool))
@@ -300,7 +301,8 @@ class QLearner(PPOLearner):
         traj, records, last_value, last_alive = self.rollout_with_keys(
             (train_state.params, eps), levels,
             self.rollout_keys(k_rollout, ppo.num_steps, num_envs))
-        item = Trajectory(obs=traj.obs, world=traj.world, mask=traj.mask, alive=traj.alive,
+        world = traj.world if self.centralised else None
+        item = Trajectory(obs=traj.obs, world=world, mask=traj.mask, alive=traj.alive,
                           action=traj.action, reward=traj.reward, done=traj.done)
         # (T, E, ...) -> (E, 1, T, ...): each env adds one item, its whole trajectory.
         buffer = self.buffer.add(train_state.buffer,
@@ -387,7 +389,7 @@ class QLearner(PPOLearner):
         else:
             zero_dead = lambda v, a: jnp.where(a, v, 0.0)
             taken = self.mix(params, zero_dead(taken, batch.alive), batch.world)
-            next_world = _shift_in_zero(batch.world[1:])
+            next_world = None if batch.world is None else _shift_in_zero(batch.world[1:])
             next_q = self.mix(target_params, zero_dead(next_q, next_alive), next_world)
             target = reward + gamma * cont * next_q
             valid = in_loss
