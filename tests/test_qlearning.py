@@ -162,7 +162,7 @@ def test_tiny_run_resumes_bit_for_bit_and_plays_in_eval(algorithm, tmp_path, cap
     from tabx_ued.cli import main
     from ued.checkpoint import Checkpoints
     from ued.experiment import learner_for
-    from ued.run_folder import CHECKPOINT_DIR
+    from ued.run_folder import CHECKPOINT_DIR, load_policy
     from ued.tensorboard import read_scalars
     from workers.train import train
 
@@ -196,6 +196,12 @@ def test_tiny_run_resumes_bit_for_bit_and_plays_in_eval(algorithm, tmp_path, cap
     state, metrics, _ = learner.update(state_a, moved, jax.random.key(9))
     assert learner._update_jit._cache_size() == 1 and np.isfinite(float(metrics["loss/td"]))
 
+    # A policy loads its parameters alone (not the buffer), the same ones.
+    policy = load_policy(full)
+    assert policy.update == 4
+    for x, y in zip(jax.tree.leaves(policy.params), jax.tree.leaves(state_a.params),
+                    strict=True):
+        assert np.array_equal(np.asarray(x), np.asarray(y))
     if algorithm != "qmix":  # the evaluation path is the same for every Q-learner
         return
     code = main(["eval", str(full), "--episodes", "4", "--greedy"])
