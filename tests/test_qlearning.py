@@ -93,6 +93,77 @@ def test_epsilon_falls_linearly_then_stays():
     assert float(eps(99)) == pytest.approx(0.05)
 
 
+@pytest.mark.parametrize("algorithm", ["iql", pytest.param("vdn", marks=pytest.mark.slow),
+                                       "qmix"])
+def test_td_loss_equals_a_step_by_step_double_q_computation(algorithm):
+    """The batched loss against plain loops over steps, trajectories and agents: double-Q
+    targets over legal actions, no bootstrap past an episode's end (or, for IQL, an agent's
+    death), dead agents at 0 in the mixer, the last step only where it ended an episode."""
+    from ued.learners.qlearning import Trajectory, qnet_sequence
+
+    learner = make_learner(algorithm, ENV_CONFIG,
+                           PPOConfig(num_envs=4, num_steps=6, hidden_dim=8, gamma=0.9,
+                                     matmul_dtype="float32"),
+                           q=QLearningConfig(buffer_size=8, batch_size=4, reward_scale=2.0))
+    keys = jax.random.split(jax.random.key(7), 9)
+    params, target = learner.init_params(keys[0]), learner.init_params(keys[1])
+    T, B, A = 6, 3, learner.num_agents
+    mask = jax.random.bernoulli(keys[2], 0.6, (T, B, A, 8)).at[..., 0].set(True)
+    action = jax.vmap(jax.random.categorical)(
+        jax.random.split(keys[3], T * B * A),
+        jnp.where(mask, 0.0, -1e10).reshape(-1, 8)).reshape(T, B, A).astype(jnp.int32)
+    done = jnp.array([[0, 0, 1, 0, 0, 1], [0, 1, 0, 0, 0, 0], [0, 0, 0, 0, 1, 0]], bool).T
+    batch = Trajectory(
+        obs=jax.random.normal(keys[4], (T, B, A, ENV_CONFIG.obs_size)),
+        world=(jax.random.normal(keys[5], (T, B, ENV_CONFIG.state_size))
+               if algorithm == "qmix" else None),
+        mask=mask, alive=jax.random.bernoulli(keys[6], 0.7, (T, B, A)), action=action,
+        reward=jax.random.normal(keys[7], (T, B)), done=done)
+    loss, _ = jax.jit(learner._loss)(params, target, batch)
+
+    starts = np.concatenate([np.ones((1, B), bool), np.asarray(done[:-1])], 0)
+    x = learner.agent_inputs(batch.obs).reshape(T, B * A, -1)
+    q_of = lambda p: np.asarray(qnet_sequence(p["agent"], x, jnp.repeat(starts, A, 1))
+                                ).reshape(T, B, A, 8)
+    q, qt = q_of(params), q_of(target)
+    mask, alive, action = np.asarray(mask), np.asarray(batch.alive), np.asarray(action)
+    reward, done = np.asarray(batch.reward) * 2.0, np.asarray(done)
+
+    qmix = jax.jit(mixers.qmix)
+
+    def mixed(p, values, t, b):
+        if algorithm == "vdn":
+            return float(np.sum(values))
+        return float(qmix(p["mixer"], jnp.asarray(values, jnp.float32), batch.world[t, b]))
+
+    errors = []
+    for t in range(T):
+        for b in range(B):
+            if t == T - 1 and not done[t, b]:
+                continue  # no next observation to bootstrap from
+            nxt = []
+            for a in range(A):
+                if t + 1 < T:
+                    best = int(np.argmax(np.where(mask[t + 1, b, a], q[t + 1, b, a], -np.inf)))
+                    nxt.append(qt[t + 1, b, a, best])
+                else:
+                    nxt.append(0.0)
+            if algorithm == "iql":
+                for a in range(A):
+                    if alive[t, b, a]:
+                        boot = (not done[t, b]) and t + 1 < T and alive[t + 1, b, a]
+                        y = reward[t, b] + 0.9 * nxt[a] * boot
+                        errors.append(q[t, b, a, action[t, b, a]] - y)
+            else:
+                taken = [q[t, b, a, action[t, b, a]] * alive[t, b, a] for a in range(A)]
+                boot = 0.0
+                if not done[t, b]:
+                    boot = mixed(target, np.array(nxt) * alive[t + 1, b], t + 1, b)
+                y = reward[t, b] + 0.9 * boot
+                errors.append(mixed(params, np.array(taken), t, b) - y)
+    assert float(loss) == pytest.approx(float(np.mean(np.square(errors))), rel=1e-4)
+
+
 # --- configs ---------------------------------------------------------------------------------
 
 
@@ -191,7 +262,8 @@ def test_tiny_run_resumes_bit_for_bit_and_plays_in_eval(algorithm, tmp_path, cap
     assert all(np.isfinite(v) for _, v in scalars["loss/td"])
     assert scalars["buffer/trajectories"][-1][1] == 8.0
 
-    # Other levels of the same EnvConfig run through the same compiled update.
+    # Other levels of the same EnvConfig run through the same compiled update (which
+    # donates state_a).
     moved = jax.tree.map(jnp.asarray, repeat_level(duel_level(ally_x=-6.0), 4))
     state, metrics, _ = learner.update(state_a, moved, jax.random.key(9))
     assert learner._update_jit._cache_size() == 1 and np.isfinite(float(metrics["loss/td"]))
@@ -199,7 +271,7 @@ def test_tiny_run_resumes_bit_for_bit_and_plays_in_eval(algorithm, tmp_path, cap
     # A policy loads its parameters alone (not the buffer), the same ones.
     policy = load_policy(full)
     assert policy.update == 4
-    for x, y in zip(jax.tree.leaves(policy.params), jax.tree.leaves(state_a.params),
+    for x, y in zip(jax.tree.leaves(policy.params), jax.tree.leaves(state_b.params),
                     strict=True):
         assert np.array_equal(np.asarray(x), np.asarray(y))
     if algorithm != "qmix":  # the evaluation path is the same for every Q-learner
