@@ -11,7 +11,14 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_learners_helpers import ENV_CONFIG, TINY, duel_level, scenario_file
+from test_learners_helpers import (
+    ENV_CONFIG,
+    TINY,
+    duel_level,
+    learning_duel,
+    restore_both_and_compare,
+    scenario_file,
+)
 
 from tabx.params import repeat_level
 from ued.config import (
@@ -231,7 +238,6 @@ def test_tiny_run_resumes_bit_for_bit_and_plays_in_eval(algorithm, tmp_path, cap
     """Each learner's smoke test: a run of 4 updates equals one stopped after 3, resumed
     from the checkpoint of update 2; one compiled update throughout."""
     from tabx_ued.cli import main
-    from ued.checkpoint import Checkpoints
     from ued.experiment import learner_for
     from ued.run_folder import CHECKPOINT_DIR, load_policy
     from ued.tensorboard import read_scalars
@@ -246,13 +252,8 @@ def test_tiny_run_resumes_bit_for_bit_and_plays_in_eval(algorithm, tmp_path, cap
     train(run_dir=part, resume=True, progress=False)
     assert learner._update_jit._cache_size() == compiled == 1
     template = learner.init(jax.random.key(0))
-    with Checkpoints(full / CHECKPOINT_DIR) as a, Checkpoints(part / CHECKPOINT_DIR) as b:
-        state_a, key_a, n_a = a.restore(template)
-        state_b, key_b, n_b = b.restore(template)
-    assert n_a == n_b == 4
-    for x, y in zip(jax.tree.leaves(state_a), jax.tree.leaves(state_b), strict=True):
-        assert np.array_equal(np.asarray(x), np.asarray(y))
-    assert np.array_equal(jax.random.key_data(key_a), jax.random.key_data(key_b))
+    state_a, update = restore_both_and_compare(full, part, template)
+    assert update == 4
     # The buffer holds 2 trajectories per env, and the learner learned.
     assert int(state_a.buffer.current_index) == 0 and bool(state_a.buffer.is_full)
     assert not np.array_equal(np.asarray(state_a.params["agent"]["out"]["w"]),
@@ -262,18 +263,17 @@ def test_tiny_run_resumes_bit_for_bit_and_plays_in_eval(algorithm, tmp_path, cap
     assert all(np.isfinite(v) for _, v in scalars["loss/td"])
     assert scalars["buffer/trajectories"][-1][1] == 8.0
 
-    # Other levels of the same EnvConfig run through the same compiled update (which
-    # donates state_a).
+    # A policy loads its parameters alone (not the buffer), the same ones.
+    policy = load_policy(full)
+    assert policy.update == 4
+    for x, y in zip(jax.tree.leaves(policy.params), jax.tree.leaves(state_a.params),
+                    strict=True):
+        assert np.array_equal(np.asarray(x), np.asarray(y))
+    # Other levels of the same EnvConfig run through the same compiled update.
     moved = jax.tree.map(jnp.asarray, repeat_level(duel_level(ally_x=-6.0), 4))
     state, metrics, _ = learner.update(state_a, moved, jax.random.key(9))
     assert learner._update_jit._cache_size() == 1 and np.isfinite(float(metrics["loss/td"]))
 
-    # A policy loads its parameters alone (not the buffer), the same ones.
-    policy = load_policy(full)
-    assert policy.update == 4
-    for x, y in zip(jax.tree.leaves(policy.params), jax.tree.leaves(state_b.params),
-                    strict=True):
-        assert np.array_equal(np.asarray(x), np.asarray(y))
     if algorithm != "qmix":  # the evaluation path is the same for every Q-learner
         return
     code = main(["eval", str(full), "--episodes", "4", "--greedy"])
@@ -291,16 +291,7 @@ def test_learns_two_archers_against_a_farmer(algorithm):
     """The duel of tests/test_learners_learning.py: a random policy (the first updates, at
     epsilon 1) seldom wins; after 40 updates of 32 envs x 64 steps the greedy policy mostly
     does."""
-    import math
-
-    from tabx.params import EnvConfig, make_level
-
-    config = EnvConfig(max_allies=2, max_enemies=1, max_zones=0, max_steps=64)
-    level = make_level(
-        config,
-        [dict(unit="archer", position=(-12.0, -4.0), heading=0.0),
-         dict(unit="archer", position=(-12.0, 4.0), heading=0.0)],
-        [dict(unit="farmer", position=(-8.0, 18.0), heading=math.pi)])
+    config, level = learning_duel()
     num_envs, num_steps, updates = 32, 64, 40
     levels = jax.tree.map(jnp.asarray, repeat_level(level, num_envs))
     ppo = PPOConfig(num_envs=num_envs, num_steps=num_steps, hidden_dim=64, lr=3e-3,
