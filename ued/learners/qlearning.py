@@ -67,7 +67,6 @@ from ued.learners.ppo import (
     team_mean,
 )
 
-MIXERS = ("none", "vdn", "qmix")
 # Scale of the Q-values returned as logits by `policy_step`: Q-values a thousandth apart
 # differ by 1e4 in logit, so a categorical sample is the argmax.
 GREEDY_LOGIT_SCALE = 1e7
@@ -149,7 +148,7 @@ def pick(q: jax.Array, action: jax.Array) -> jax.Array:
     return jnp.take_along_axis(q, action[..., None], -1)[..., 0]
 
 
-def epsilon_schedule(q: QLearningConfig, num_updates: int):
+def epsilon_schedule(q: QLearningConfig, num_updates: int) -> optax.Schedule:
     """Update count -> epsilon: linear from eps_start to eps_finish over the first
     `eps_decay` of the run's updates, then eps_finish."""
     return optax.linear_schedule(q.eps_start, q.eps_finish,
@@ -173,6 +172,7 @@ class QLearner(PPOLearner):
                  q: QLearningConfig | None = None):
         self.q = q if q is not None else QLearningConfig()
         ppo = ppo if ppo is not None else PPOConfig()
+        self.q.validate(ppo.num_envs)  # the buffer's sizes (a ConfigError naming the field)
         # The QMIX mixer reads the world state (the rollout records it for centralised
         # learners only).
         self.centralised = self.mixer == "qmix"
@@ -447,6 +447,6 @@ def cached_q_learner(cls: type, env_config: EnvConfig, ppo: PPOConfig, team: str
     return _cached(cls, env_config, ppo, team, opponent, q)
 
 
-__all__ = ["GREEDY_LOGIT_SCALE", "IQL", "MIXERS", "QMIX", "Q_LEARNERS", "QLearner",
+__all__ = ["GREEDY_LOGIT_SCALE", "IQL", "QMIX", "Q_LEARNERS", "QLearner",
            "QTrainState", "Trajectory", "VDN", "cached_q_learner", "epsilon_schedule",
            "masked_argmax", "qnet_init", "qnet_sequence", "qnet_step"]
