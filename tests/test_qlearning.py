@@ -175,7 +175,8 @@ def test_td_loss_equals_a_step_by_step_double_q_computation(algorithm):
 
 
 @pytest.mark.parametrize("overrides, message", [
-    ({"algorithm": "dqn"}, "algorithm: must be one of mappo, ippo, iql, vdn, qmix, got 'dqn'"),
+    ({"algorithm": "dqn"},
+     "algorithm: must be one of mappo, ippo, mappo_rnd, iql, vdn, qmix, got 'dqn'"),
     ({"qlearning.mixer_hidden_dim": 32}, "qlearning.mixer_hidden_dim: a setting of QMIX's "
                                          "mixing network; iql has none"),
     ({"learner.ent_coef": 0.1}, "learner.ent_coef: a PPO setting; iql does not use it"),

@@ -298,7 +298,7 @@ class QLearner(PPOLearner):
         num_envs = levels.reward_mode.shape[0]
         k_rollout, k_train = jax.random.split(key)
         eps = self.epsilon(train_state.update)
-        traj, records, last_value, last_alive = self.rollout_with_keys(
+        traj, records, last = self.rollout_with_keys(
             (train_state.params, eps), levels,
             self.rollout_keys(k_rollout, ppo.num_steps, num_envs))
         world = traj.world if self.centralised else None
@@ -339,7 +339,7 @@ class QLearner(PPOLearner):
             lambda: train_state.target_params)
         new_state = QTrainState(params=params, target_params=target_params,
                                 opt_state=opt_state, buffer=buffer, update=update)
-        stats = self._q_stats(traj, last_value, last_alive)
+        stats = self._q_stats(traj, last.value, last.alive)
         metrics = {**aux, **episode_metrics(records)}
         metrics["value/mean"] = jnp.mean(stats.values)
         metrics["explore/epsilon"] = eps
@@ -404,9 +404,9 @@ class QLearner(PPOLearner):
     def _score_envs(self, params: Any, levels: EnvParams, keys: jax.Array
                     ) -> tuple[dict[str, jax.Array], RolloutStats]:
         """The greedy policy's rollout (epsilon 0)."""
-        traj, records, last_value, last_alive = self.rollout_with_keys(
+        traj, records, last = self.rollout_with_keys(
             (params, jnp.zeros((), jnp.float32)), levels, keys)
-        return records, self._q_stats(traj, last_value, last_alive)
+        return records, self._q_stats(traj, last.value, last.alive)
 
 
 class IQL(QLearner):
