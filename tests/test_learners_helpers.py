@@ -66,3 +66,33 @@ def tiny_learner():
 
 def tiny_levels() -> EnvParams:
     return jax.tree.map(jnp.asarray, repeat_level(duel_level(), TINY["learner"]["num_envs"]))
+
+
+def restore_both_and_compare(full: Path, part: Path, template: Any) -> tuple[Any, int]:
+    """Restore the newest checkpoints of two run folders (`full` and `part`) against
+    `template`, assert that their train states and keys are equal bit for bit, and return
+    (train state of `full`, its update)."""
+    import numpy as np
+
+    from ued.checkpoint import Checkpoints
+    from ued.run_folder import CHECKPOINT_DIR
+
+    with Checkpoints(full / CHECKPOINT_DIR) as a, Checkpoints(part / CHECKPOINT_DIR) as b:
+        state_a, key_a, n_a = a.restore(template)
+        state_b, key_b, n_b = b.restore(template)
+    assert n_a == n_b
+    for x, y in zip(jax.tree.leaves(state_a), jax.tree.leaves(state_b), strict=True):
+        assert np.array_equal(np.asarray(x), np.asarray(y))
+    assert np.array_equal(jax.random.key_data(key_a), jax.random.key_data(key_b))
+    return state_a, n_a
+
+
+def learning_duel(max_steps: int = 64) -> tuple[EnvConfig, EnvParams]:
+    """The learning tests' battle: two archers face +x, a farmer stands above them, outside
+    their field of view."""
+    config = EnvConfig(max_allies=2, max_enemies=1, max_zones=0, max_steps=max_steps)
+    return config, make_level(
+        config,
+        [dict(unit="archer", position=(-12.0, -4.0), heading=0.0),
+         dict(unit="archer", position=(-12.0, 4.0), heading=0.0)],
+        [dict(unit="farmer", position=(-8.0, 18.0), heading=math.pi)])

@@ -9,25 +9,19 @@ trained policy wins nearly every episode. Runs in about 30-45 s on 2 CPU cores.
 
 from __future__ import annotations
 
-import math
-
 import jax
 import jax.numpy as jnp
 import pytest
+from test_learners_helpers import learning_duel
 
-from tabx.params import EnvConfig, make_level, repeat_level
+from tabx.params import repeat_level
 from ued.config import PPOConfig
 from ued.learners import make_learner
 
 
 @pytest.mark.parametrize("algorithm", ["mappo", pytest.param("ippo", marks=pytest.mark.slow)])
 def test_learns_two_archers_against_a_farmer(algorithm):
-    config = EnvConfig(max_allies=2, max_enemies=1, max_zones=0, max_steps=64)
-    level = make_level(
-        config,
-        [dict(unit="archer", position=(-12.0, -4.0), heading=0.0),
-         dict(unit="archer", position=(-12.0, 4.0), heading=0.0)],
-        [dict(unit="farmer", position=(-8.0, 18.0), heading=math.pi)])
+    config, level = learning_duel()
     num_envs, num_steps, updates = 64, 64, 40
     levels = jax.tree.map(jnp.asarray, repeat_level(level, num_envs))
     ppo = PPOConfig(num_envs=num_envs, num_steps=num_steps, hidden_dim=64,

@@ -148,7 +148,9 @@ def test_bench_train_parser():
     assert args.algorithms == ["ippo"] and args.num_envs == 8 and callable(args.func)
     assert args.matmul_dtype is None  # the config default
     assert parser.parse_args(["train", "--matmul-dtype", "float32"]).matmul_dtype == "float32"
-    for bad in (["--algorithms", "qmix"], ["--matmul-dtype", "float16"]):
+    assert parser.parse_args(["train", "--algorithms", "iql,vdn,qmix"]).algorithms == [
+        "iql", "vdn", "qmix"]
+    for bad in (["--algorithms", "dqn"], ["--matmul-dtype", "float16"]):
         with pytest.raises(SystemExit):
             parser.parse_args(["train", *bad])
 

@@ -86,6 +86,30 @@ class Checkpoints:
         state = jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), item["train_state"])
         return state, key, int(update)
 
+    def restore_params(self, template: Any, update: int | None = None) -> tuple[Any, int]:
+        """(parameters, update) of checkpoint `update` (default: the newest) without reading
+        the rest of the train state (the optimiser state, a Q-learner's replay buffer of some
+        GB): what a policy needs. `template`: the train state's `params`, as arrays or
+        `jax.ShapeDtypeStruct`s (`jax.eval_shape` of the learner's `init` allocates nothing)."""
+        update = self.latest() if update is None else update
+        if update is None:
+            raise CheckpointError(f"{self.directory}: no checkpoint")
+        struct = lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype)
+        abstract = {"train_state": {"params": jax.tree.map(struct, template)}}
+        restore_args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), abstract)
+        _quiet_abandoned_reads()
+        try:
+            # The manager saved one item, named "default", in the step's folder.
+            item = ocp.PyTreeCheckpointer().restore(
+                self.directory / str(update) / "default",
+                args=ocp.args.PyTreeRestore(item=abstract, restore_args=restore_args,
+                                            partial_restore=True))
+        except Exception as err:  # noqa: BLE001 (orbax and TensorStore raise many kinds)
+            raise CheckpointError(f"{self.directory / str(update)}: cannot be restored "
+                                  f"({gist(err)})") from err
+        params = jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), item["train_state"]["params"])
+        return params, int(update)
+
     def reload(self) -> None:
         """Read the step folders again (after some were moved away)."""
         self._manager.reload()

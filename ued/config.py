@@ -2,10 +2,11 @@
 
 A config has six sections and two top-level keys:
 
-    algorithm: mappo          # mappo | ippo | mappo_rnd
+    algorithm: mappo          # mappo | ippo | mappo_rnd | iql | vdn | qmix
     seed: 0
     env:     {scenario, team, opponent, max_steps, profile}
     learner: {PPO hyperparameters, num_envs, num_steps, total_timesteps}
+    qlearning: {replay buffer, epsilon, target network, mixer}   (iql, vdn, qmix only)
     run:     {name, dir, checkpoint_every, keep_checkpoints, log_every}
     ray:     {enabled, address, explorers, staleness bounds, deterministic}  (RaySection)
     ued:     {method, score, buffer and SFL settings, evaluation suites}   (UEDSection)
@@ -38,7 +39,12 @@ from ued.errors import check as _check
 from ued.levels import LevelSpace
 from ued.yaml_reader import read_yaml
 
-ALGORITHMS = ("mappo", "ippo", "mappo_rnd")
+PPO_ALGORITHMS = ("mappo", "ippo", "mappo_rnd")
+Q_ALGORITHMS = ("iql", "vdn", "qmix")  # ued.learners.qlearning
+ALGORITHMS = PPO_ALGORITHMS + Q_ALGORITHMS
+# `learner` fields only the PPO learners read: a Q-learner's config must leave them as they are.
+PPO_ONLY_FIELDS = ("gae_lambda", "clip_eps", "clip_value", "ent_coef", "vf_coef",
+                   "num_minibatches", "normalize_advantages")
 MATMUL_DTYPES = ("bfloat16", "float32")  # learner.matmul_dtype
 TEAMS = ("ally", "enemy")
 
@@ -120,17 +126,19 @@ class PPOConfig:
     def num_updates(self) -> int:
         return max(1, self.total_timesteps // self.steps_per_update)
 
-    def validate(self, prefix: str = "learner") -> None:
+    def validate(self, prefix: str = "learner", ppo: bool = True) -> None:
+        """`ppo`: also check the fields only PPO reads (minibatches)."""
         for name in ("num_envs", "num_steps", "total_timesteps", "hidden_dim", "update_epochs",
                      "num_minibatches", "rnd_update_epochs", "rnd_hidden_dim",
                      "rnd_output_dim", "rnd_layers"):
             value = getattr(self, name)
             _check(value >= 1, f"{prefix}.{name}", f"must be >= 1, got {value}")
-        _check(self.num_envs % self.num_minibatches == 0, f"{prefix}.num_minibatches",
-               f"must divide num_envs ({self.num_envs}), got {self.num_minibatches}")
+        if ppo:
+            _check(self.num_envs % self.num_minibatches == 0, f"{prefix}.num_minibatches",
+                   f"must divide num_envs ({self.num_envs}), got {self.num_minibatches}")
         _check(self.num_devices >= 0, f"{prefix}.num_devices",
                f"must be >= 0 (0: automatic), got {self.num_devices}")
-        if self.num_devices:
+        if self.num_devices and ppo:
             _check(self.num_envs % (self.num_devices * self.num_minibatches) == 0,
                    f"{prefix}.num_devices",
                    f"num_envs ({self.num_envs}) must split into num_devices x num_minibatches "
@@ -150,6 +158,63 @@ class PPOConfig:
         _check(self.max_grad_norm > 0, f"{prefix}.max_grad_norm",
                f"must be > 0, got {self.max_grad_norm}")
         _check(self.adam_eps > 0, f"{prefix}.adam_eps", f"must be > 0, got {self.adam_eps}")
+
+
+@dataclass(frozen=True)
+class QLearningConfig:
+    """Settings of the Q-learners (iql, vdn, qmix) beyond the `learner` fields they share with
+    PPO (num_envs, num_steps, total_timesteps, lr, anneal_lr, hidden_dim, gamma, max_grad_norm,
+    adam_eps, update_epochs = gradient steps per update, matmul_dtype). Defaults: the paper's
+    table "IQL and QMIX Hyperparameters" and the reference for the rest (TABX_REFERENCE.md
+    section 11); the mixer fields are QMIX's."""
+
+    buffer_size: int = 5000  # trajectories kept (one per env per update, num_steps long)
+    batch_size: int = 32  # trajectories per gradient step
+    eps_start: float = 1.0  # epsilon-greedy exploration, linear from start to finish
+    eps_finish: float = 0.05
+    eps_decay: float = 0.1  # over this fraction of the run's updates
+    target_update_interval: int = 10  # updates between target-network updates
+    tau: float = 1.0  # target <- tau online + (1 - tau) target (1: a copy)
+    learning_starts: int = 10_000  # env steps before the first gradient step
+    reward_scale: float = 10.0  # rewards are multiplied by this in the TD targets
+    mixer_embed_dim: int = 64  # QMIX: mixing-network width
+    mixer_hidden_dim: int = 256  # QMIX: hypernetwork hidden width
+    mixer_init_scale: float = 0.001  # QMIX: orthogonal init scale of the hypernetworks
+
+    def capacity(self, num_envs: int) -> int:
+        """Trajectories the buffer holds: `buffer_size // num_envs` per env."""
+        return (self.buffer_size // num_envs) * num_envs
+
+    def validate(self, num_envs: int, prefix: str = "qlearning") -> None:
+        for name in ("buffer_size", "batch_size", "target_update_interval", "mixer_embed_dim",
+                     "mixer_hidden_dim"):
+            value = getattr(self, name)
+            _check(value >= 1, f"{prefix}.{name}", f"must be >= 1, got {value}")
+        _check(self.buffer_size >= num_envs, f"{prefix}.buffer_size",
+               f"must hold at least one trajectory per env (learner.num_envs {num_envs}), "
+               f"got {self.buffer_size}")
+        _check(self.capacity(num_envs) >= self.batch_size, f"{prefix}.buffer_size",
+               f"must hold at least one batch (batch_size {self.batch_size} trajectories; "
+               f"the buffer keeps buffer_size // num_envs per env, "
+               f"{self.capacity(num_envs)} in all), got {self.buffer_size}")
+        for name in ("eps_start", "eps_finish", "eps_decay", "tau"):
+            value = getattr(self, name)
+            _check(0.0 <= value <= 1.0, f"{prefix}.{name}", f"must be in [0, 1], got {value}")
+        _check(self.tau > 0, f"{prefix}.tau", f"must be > 0, got {self.tau}")
+        _check(self.learning_starts >= 0, f"{prefix}.learning_starts",
+               f"must be >= 0, got {self.learning_starts}")
+        _check(self.reward_scale > 0, f"{prefix}.reward_scale",
+               f"must be > 0, got {self.reward_scale}")
+        _check(self.mixer_init_scale > 0, f"{prefix}.mixer_init_scale",
+               f"must be > 0, got {self.mixer_init_scale}")
+
+
+MIXER_FIELDS = ("mixer_embed_dim", "mixer_hidden_dim", "mixer_init_scale")
+# The paper's `learner` settings of the Q-learners (table "IQL and QMIX Hyperparameters"; the
+# reference's gradient clipping, RAdam epsilon and constant learning rate), where they differ
+# from PPO's defaults: configs/marl/{iql,vdn,qmix}_*.yaml and `tabx bench train` use them.
+Q_LEARNER_SETTINGS = {"lr": 5e-5, "anneal_lr": False, "hidden_dim": 512, "max_grad_norm": 10.0,
+                      "adam_eps": 1e-8, "update_epochs": 8}
 
 
 @dataclass(frozen=True)
@@ -293,6 +358,7 @@ class TrainConfig:
     seed: int = 0
     env: EnvSection = field(default_factory=EnvSection)
     learner: PPOConfig = field(default_factory=PPOConfig)
+    qlearning: QLearningConfig = field(default_factory=QLearningConfig)
     run: RunSection = field(default_factory=RunSection)
     ued: UEDSection = field(default_factory=UEDSection)
     levels: LevelSpace = field(default_factory=LevelSpace)
@@ -302,7 +368,8 @@ class TrainConfig:
         _check(self.algorithm in ALGORITHMS, "algorithm",
                f"must be one of {', '.join(ALGORITHMS)}, got {self.algorithm!r}")
         self.env.validate()
-        self.learner.validate()
+        self.learner.validate(ppo=self.algorithm in PPO_ALGORITHMS)
+        self._validate_algorithm_settings()
         if self.algorithm != "mappo_rnd":
             defaults = PPOConfig()
             for f in dataclasses.fields(PPOConfig):
@@ -314,6 +381,9 @@ class TrainConfig:
         self.ued.validate()
         self.levels.validate()
         self.ray.validate()
+        _check(not self.run.value_error_every or self.algorithm in PPO_ALGORITHMS,
+               "run.value_error_every", f"the value error compares a value head with Monte-Carlo "
+               f"returns; {self.algorithm} has no value head")
         _check(not self.run.value_error_every or not self.ued.enabled, "run.value_error_every",
                "the value error is logged during plain MARL runs (ued.method: none); analyse "
                "a UED run with tabx analyse value-error")
@@ -328,6 +398,32 @@ class TrainConfig:
                    "the generated heuristic parameters (levels.free includes heuristic): use "
                    "'heuristic' (the level's own parameters)")
         return self
+
+    def _validate_algorithm_settings(self) -> None:
+        """Settings the algorithm would ignore are mistakes: PPO's on a Q-learner, the
+        `qlearning` section on PPO, QMIX's mixer on IQL or VDN."""
+        changed = lambda section, names: [n for n in names if getattr(section, n) != getattr(
+            type(section)(), n)]
+        if self.algorithm in PPO_ALGORITHMS:
+            fields = [f.name for f in dataclasses.fields(QLearningConfig)]
+            for name in changed(self.qlearning, fields):
+                raise ConfigError(f"qlearning.{name}: a setting of the Q-learners "
+                                  f"({', '.join(Q_ALGORITHMS)}); {self.algorithm} does not use "
+                                  "it")
+            return
+        for name in changed(self.learner, PPO_ONLY_FIELDS):
+            raise ConfigError(f"learner.{name}: a PPO setting; {self.algorithm} does not use it")
+        if self.algorithm != "qmix":
+            for name in changed(self.qlearning, MIXER_FIELDS):
+                raise ConfigError(f"qlearning.{name}: a setting of QMIX's mixing network; "
+                                  f"{self.algorithm} has none")
+        self.qlearning.validate(self.learner.num_envs)
+        _check(self.learner.num_devices <= 1, "learner.num_devices",
+               f"{self.algorithm} runs on one device (its replay buffer lives there), got "
+               f"{self.learner.num_devices}")
+        _check(not self.ued.enabled, "ued.method",
+               f"the UED curricula train MAPPO or IPPO; {self.algorithm} trains on the "
+               f"scenarios of env.scenario (ued.method: none)")
 
     @property
     def run_name(self) -> str:
@@ -531,6 +627,8 @@ def apply_overrides(data: Any, overrides: Sequence[str], source: str = "config")
     return out
 
 
-__all__ = ["ALGORITHMS", "TEAMS", "UED_METHODS", "UED_SCORES", "ConfigError", "EnvSection",
-           "PPOConfig", "RaySection", "RunSection", "TrainConfig", "UEDSection", "apply_overrides",
-           "config_from_dict", "load_config", "read_config_file"]
+__all__ = ["ALGORITHMS", "PPO_ALGORITHMS", "Q_ALGORITHMS", "Q_LEARNER_SETTINGS",
+           "TEAMS", "UED_METHODS", "UED_SCORES",
+           "ConfigError", "EnvSection", "PPOConfig", "QLearningConfig", "RaySection",
+           "RunSection", "TrainConfig", "UEDSection", "apply_overrides", "config_from_dict",
+           "load_config", "read_config_file"]

@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 
 from tabx.params import EnvConfig, EnvParams, stack_levels
-from ued.config import ConfigError, TrainConfig
+from ued.config import Q_ALGORITHMS, ConfigError, TrainConfig
 from ued.learners import make_learner
 from ued.learners.ppo import PPOLearner
 
@@ -44,8 +44,9 @@ def learner_for(config: TrainConfig, env_config: EnvConfig | None = None) -> PPO
     """The (per-process cached) learner of a config."""
     if env_config is None:
         env_config = scenario_levels(config)[0]
+    q = config.qlearning if config.algorithm in Q_ALGORITHMS else None
     return make_learner(config.algorithm, env_config, config.learner, config.env.team,
-                        config.env.opponent)
+                        config.env.opponent, q=q)
 
 
 def check_devices(config: TrainConfig) -> None:

@@ -150,7 +150,9 @@ def load_policy(run_dir: str | Path, checkpoint: int | None = None) -> TrainedPo
     run_dir = Path(run_dir)
     config = read_run_config(run_dir)
     learner = learner_for(config)
-    template = learner.init(jax.random.key(0))
+    # The parameters alone: their shapes need no allocation, and the rest of the train state
+    # (a Q-learner's replay buffer: GBs) is not read.
+    template = jax.eval_shape(learner.init_params, jax.random.key(0))
     with open_checkpoints(run_dir, config, create=False) as ckpts:
         if ckpts.latest() is None:
             raise ConfigError(f"{run_dir}: no checkpoint yet")
@@ -158,11 +160,11 @@ def load_policy(run_dir: str | Path, checkpoint: int | None = None) -> TrainedPo
             raise ConfigError(f"{run_dir}: no checkpoint {checkpoint} (have "
                               f"{', '.join(map(str, ckpts.all()))})")
         try:
-            state, _, update = ckpts.restore(template, checkpoint)
+            params, update = ckpts.restore_params(template, checkpoint)
         except CheckpointError as err:
             raise CheckpointError(f"{err}; `tabx runs check {run_dir}` lists the intact "
                                   f"checkpoints, `--checkpoint N` picks one") from None
-    return TrainedPolicy(run_dir, config, learner, state.params, update)
+    return TrainedPolicy(run_dir, config, learner, params, update)
 
 
 __all__ = ["CHECKPOINT_DIR", "CONFIG_FILE", "EVENTS_DIR", "LEVELS_DIR", "SET_ASIDE_DIR",

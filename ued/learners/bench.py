@@ -1,7 +1,11 @@
-"""`tabx bench train`: end-to-end training throughput of MAPPO and IPPO.
+"""`tabx bench train`: end-to-end training throughput of MAPPO and IPPO (by default) and of the
+Q-learners IQL, VDN and QMIX (`--algorithms iql,vdn,qmix`).
 
 Protocol (docs/benchmarks.md, "Training throughput"): the paper's defaults (128 envs x 512
-steps per update, 4 epochs of 4 minibatches, hidden 128) on a scenario (default crossfire)
+steps per update, 4 epochs of 4 minibatches, hidden 128; for the Q-learners their table:
+hidden 512, 8 gradient steps of 32 trajectories per update, a buffer of 5000 trajectories of
+`num_steps` steps, which at 128 x 512 takes some GB of device memory) on a scenario (default
+crossfire)
 against an opponent (default the medium heuristic). The first update is timed from the call to
 its result, compilation included; then `--updates` more updates are timed one by one
 (`block_until_ready`), and the steady-state throughput is env steps per update / median seconds
@@ -100,16 +104,23 @@ def _run_train_bench(algorithm: str, scenario: str, opponent: str, num_envs: int
     from tabx.compile_counter import CompileCounter
     from tabx.params import repeat_level
     from tabx.scenarios import config_for, load_named
-    from ued.config import PPOConfig
+    from ued.config import Q_ALGORITHMS, Q_LEARNER_SETTINGS, PPOConfig, QLearningConfig
     from ued.learners import make_learner
 
     level_scenario = load_named(scenario)
     env_config = config_for([level_scenario])
     levels = jax.tree.map(jnp.array, repeat_level(level_scenario.to_level(env_config), num_envs))
     ppo = PPOConfig(num_envs=num_envs, num_steps=num_steps)
+    q = None
+    if algorithm in Q_ALGORITHMS:
+        # The paper's Q-learning settings, learning from the first update on (every timed
+        # update samples and takes its gradient steps once the buffer holds a batch).
+        ppo = dataclasses.replace(ppo, **Q_LEARNER_SETTINGS)
+        q = QLearningConfig(learning_starts=0,
+                            buffer_size=max(QLearningConfig.buffer_size, num_envs))
     if matmul_dtype is not None:
         ppo = dataclasses.replace(ppo, matmul_dtype=matmul_dtype)
-    learner = make_learner(algorithm, env_config, ppo, "ally", opponent, cached=False)
+    learner = make_learner(algorithm, env_config, ppo, "ally", opponent, cached=False, q=q)
     if variant == "reference-like":
         reference_like(learner)
     key = jax.random.key(0)
@@ -140,8 +151,13 @@ def _run_train_bench(algorithm: str, scenario: str, opponent: str, num_envs: int
 
 def bench_train(args: argparse.Namespace) -> int:
     from tabx.bench import machine_summary, write_results
+    from tabx.errors import UserError
+    from ued.config import Q_ALGORITHMS
 
     variant = "reference-like" if args.reference_like else "ours"
+    if args.reference_like and set(args.algorithms) & set(Q_ALGORITHMS):
+        raise UserError("--reference-like restructures the PPO learners' training: give "
+                        "--algorithms among mappo, ippo")
     print(f"# tabx bench train on {machine_summary()}; {args.scenario} vs {args.opponent}, "
           f"{args.num_envs} envs x {args.num_steps} steps per update"
           f"{'; reference-like training structure' if args.reference_like else ''}",
@@ -183,9 +199,10 @@ def _positive(text: str) -> int:
 
 def add_train_bench(which: argparse._SubParsersAction) -> None:
     """Add `train` to the `tabx bench` sub-commands (`which` = bench.add_subparsers(...))."""
-    p = which.add_parser("train", help="MAPPO / IPPO training throughput (env steps/s)")
+    p = which.add_parser("train", help="learners' training throughput (env steps/s)")
     p.add_argument("--algorithms", type=_algorithms, default=["mappo", "ippo"],
-                   help="comma-separated learners (default mappo,ippo)")
+                   help="comma-separated learners: mappo, ippo, iql, vdn, qmix "
+                        "(default mappo,ippo)")
     p.add_argument("--scenario", default="crossfire", help="scenario (default crossfire)")
     p.add_argument("--opponent", default="heuristic:medium",
                    help="the other team (default heuristic:medium)")

@@ -257,6 +257,17 @@ class PPOLearner:
         """One step: (new hidden, logits (E, A, 8), value (E,) or (E, A))."""
         raise NotImplementedError
 
+    def act(self, params: Any, keys: jax.Array, x: jax.Array, world: jax.Array,
+            mask: jax.Array, hidden: Any) -> tuple[Any, jax.Array, jax.Array, jax.Array]:
+        """The rollout's choice at one step, one key per env: (new hidden, actions (E, A),
+        their log-probabilities, value). PPO samples its masked policy; the Q-learners
+        (ued.learners.qlearning) act epsilon-greedily."""
+        hidden, logits, value = self.act_step(params, x, world, hidden)
+        logits = masked_logits(logits, mask)
+        action = jax.vmap(jax.random.categorical)(keys, logits).astype(jnp.int32)
+        logp = jnp.take_along_axis(jax.nn.log_softmax(logits), action[..., None], -1)[..., 0]
+        return hidden, action, logp, value
+
     def policy_step(self, params: Any, x: jax.Array, hidden: Any) -> tuple[Any, jax.Array]:
         """The actor alone (evaluation): (new hidden, logits (E, A, 8))."""
         raise NotImplementedError
@@ -422,10 +433,8 @@ class PPOLearner:
             ob = observe(states, levels)[:, self.slots]
             mask = jax.vmap(env.action_mask)(states, levels)[:, self.slots]
             world = self._world(states, levels)
-            hidden, logits, value = self.act_step(params, self.agent_inputs(ob), world, hidden)
-            logits = masked_logits(logits, mask)
-            action = jax.vmap(jax.random.categorical)(k_act, logits).astype(jnp.int32)
-            logp = jnp.take_along_axis(jax.nn.log_softmax(logits), action[..., None], -1)[..., 0]
+            hidden, action, logp, value = self.act(params, k_act, self.agent_inputs(ob), world,
+                                                   mask, hidden)
             actions, states_h = self._join_actions(k_other, states, levels, action)
             _, next_states, reward, done, info = jax.vmap(env.step_autoreset)(
                 env_keys, states_h, actions, levels, start_states)
