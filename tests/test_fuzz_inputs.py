@@ -205,6 +205,9 @@ RUN_DAMAGE = {
                                                          lambda p: p.write_text("[]")),
                                      r"state-4\.json: expected a JSON object",
                                      SNAPSHOT_READERS),
+    "state files deeply nested": (lambda r: each_step(r, "levels/state-{step}.json",
+                                                      lambda p: p.write_text("[" * 100_000)),
+                                  r"state-4\.json: unreadable", SNAPSHOT_READERS),
     "state without version": (lambda r: each_step(r, "levels/state-{step}.json", lambda p: (
         p.write_text(p.read_text().replace('"version"', '"versio"')))),
         r"state-4\.json: version: expected", SNAPSHOT_READERS),
@@ -213,6 +216,8 @@ RUN_DAMAGE = {
     "ray.json missing": (lambda r: None, r"ray\.json: no Ray record", (STATUS, LIVE)),
     "ray.json truncated": (lambda r: (r / "ray.json").write_text('{"status": {"actors": ['),
                            r"ray\.json: not a readable Ray record", (STATUS, LIVE)),
+    "ray.json deeply nested": (lambda r: (r / "ray.json").write_text("[" * 100_000),
+                               r"ray\.json: not a readable Ray record", (STATUS, LIVE)),
     "ray.json a list": (lambda r: (r / "ray.json").write_text("[1, 2]"),
                         r"ray\.json: not a Ray record", (STATUS, LIVE)),
     "events missing": (lambda r: remove(r / "events"), r"no events/ folder", (PLOT,)),

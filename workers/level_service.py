@@ -199,7 +199,7 @@ class LevelService:
                                     "missing; the run folder is incomplete")
         try:
             state = json.loads(state_path.read_text())
-        except (OSError, ValueError) as err:
+        except (OSError, ValueError, RecursionError) as err:
             raise FileNotFoundError(f"{state_path}: unreadable ({err})") from None
         if self.buffer is not None:
             self.buffer = LevelBuffer.load(folder / f"buffer-{step}.msgpack", self.template)

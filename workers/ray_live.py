@@ -29,7 +29,7 @@ def read_record(run_dir: str | Path) -> dict[str, Any]:
                         f"actors have not started yet")
     try:
         data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
         raise UserError(f"{path}: not a readable Ray record ({err})") from None
     if not isinstance(data, dict) or "status" not in data:
         raise UserError(f"{path}: not a Ray record (expected an object with a 'status')")

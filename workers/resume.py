@@ -77,7 +77,7 @@ def snapshot_problem(levels_dir: Path, step: int, needs_buffer: bool) -> str | N
         return f"{state}: missing (the snapshot of step {step} is incomplete)"
     try:
         problem = state_problem(json.loads(state.read_text()))
-    except (OSError, UnicodeDecodeError, ValueError) as err:
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as err:
         return f"{state}: unreadable ({gist(err)})"
     if problem is not None:
         return f"{state}: {problem}"
