@@ -120,6 +120,11 @@ def truncate(path: Path) -> None:
     path.write_bytes(data[: len(data) // 2])
 
 
+def truncate_after(path: Path, text: str) -> None:
+    data = path.read_bytes()
+    path.write_bytes(data[: data.index(text.encode()) + len(text)])
+
+
 def flip(path: Path, at: float = 0.5) -> None:
     data = bytearray(path.read_bytes())
     i = int(len(data) * at)
@@ -154,9 +159,10 @@ RUN_DAMAGE = {
     "config missing": (lambda r: remove(r / CONFIG_FILE), r"not a run folder", CONFIG_READERS),
     "config empty": (lambda r: (r / CONFIG_FILE).write_bytes(b""), r"config\.yaml: empty file",
                      CONFIG_READERS),
-    # Cut in the middle of a token or at a line end: a YAML error with its place, or a field
-    # left without its value.
-    "config truncated": (lambda r: truncate(r / CONFIG_FILE),
+    # Cut after a key, before its value (a cut between two sections would leave a shorter
+    # config that is valid: the missing fields take their defaults): a YAML error with its
+    # place, or the field left without its value.
+    "config truncated": (lambda r: truncate_after(r / CONFIG_FILE, "num_envs:"),
                          r"config\.yaml: (not valid YAML: .*\(line \d+, column \d+\)|"
                          r"[\w.]+: expected .*, got None)",
                          CONFIG_READERS),
@@ -186,9 +192,11 @@ RUN_DAMAGE = {
     "manifest truncated": (lambda r: each_step(r, "checkpoints/{step}/default/manifest.ocdbt",
                                                truncate), r"cannot be restored",
                            CHECKPOINT_READERS),
+    # A policy's parameters are restored as host arrays, without the sharding file: `eval`
+    # plays; resuming needs the whole train state.
     "sharding truncated": (lambda r: each_step(r, "checkpoints/{step}/default/_sharding",
                                                truncate), r"cannot be restored",
-                           CHECKPOINT_READERS),
+                           (CHECK, RESUME)),
     "array data missing": (lambda r: each_step(r, "checkpoints/{step}/default/ocdbt.process_0",
                                                remove),
                            r"cannot be restored", CHECKPOINT_READERS),
@@ -285,8 +293,8 @@ def config_corpus(valid: str) -> dict[str, tuple[bytes, str]]:
         "comments only": (b"# nothing here\n", r"empty file"),
         "binary": (bytes(range(256)), r"not UTF-8"),
         "nul bytes": (valid.encode()[:40] + b"\x00\x00", r"NUL bytes"),
-        "truncated": (valid.encode()[: len(valid) // 2],  # mid-token, or a value cut off
-                      r"not valid YAML: .*line \d+|[\w.]+: expected .*, got None"),
+        "truncated": (valid.encode()[: valid.index("num_envs:") + len("num_envs:")],
+                      r"learner\.num_envs: expected an integer, got None"),
         "a list": (b"- algorithm: mappo\n", r"expected a mapping"),
         "a number": (b"3\n", r"expected a mapping"),
         "tab indent": (b"learner:\n\tlr: 0.1\n", r"not valid YAML: .*'\\t'"),
