@@ -356,7 +356,7 @@ def test_new_levels_never_recompile_and_the_update_stays_on_device():
         jax.devices()[0]}
 
 
-@pytest.mark.parametrize("algorithm", ["mappo", "ippo"])
+@pytest.mark.parametrize("algorithm", ["mappo", pytest.param("ippo", marks=pytest.mark.slow)])
 def test_an_update_split_over_two_devices_equals_the_one_device_update(algorithm):
     """Data parallel: each env draws from its own keys, so both play the same rollout; with
     one minibatch (the same rows either way) the summed shard gradients give the parameters

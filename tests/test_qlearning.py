@@ -234,7 +234,9 @@ def test_make_learner_refuses_q_settings_for_ppo():
 # --- a tiny run of each learner: resume, no recompilation, evaluation ------------------------
 
 
-@pytest.mark.parametrize("algorithm", Q_ALGORITHMS)
+# IQL in the default run; VDN and QMIX (the same loop with a mixer) with `-m slow`.
+@pytest.mark.parametrize("algorithm", [a if a == "iql" else pytest.param(a, marks=pytest.mark.slow)
+                                       for a in Q_ALGORITHMS])
 def test_tiny_run_resumes_bit_for_bit_and_plays_in_eval(algorithm, tmp_path, capsys):
     """Each learner's smoke test: a run of 4 updates equals one stopped after 3, resumed
     from the checkpoint of update 2; one compiled update throughout."""

@@ -51,6 +51,7 @@ def check_run(run_dir: Path, steps: int) -> dict:
     return record
 
 
+@pytest.mark.slow  # the lost-node test below also runs an Explorer on a second node
 def test_two_node_cluster_places_an_explorer_on_each_node(tmp_path):
     cluster = Cluster(initialize_head=True, head_node_args={
         "num_cpus": 2, "include_dashboard": False, "object_store_memory": 96 * 2**20})

@@ -61,7 +61,9 @@ def trees_equal(a, b) -> bool:
                                                     strict=True))
 
 
-@pytest.mark.parametrize("method", ["robust_plr", "accel", "sfl"])
+# ACCEL (replay, mutation, fresh levels) in the default run; the other two with `-m slow`.
+@pytest.mark.parametrize("method", [pytest.param("robust_plr", marks=pytest.mark.slow), "accel",
+                                    pytest.param("sfl", marks=pytest.mark.slow)])
 def test_deterministic_mode_equals_the_local_driver(tmp_path, method):
     local = train(ued_config(method), run_dir=tmp_path / "local", stream=io.StringIO(),
                   max_updates=STEPS)
