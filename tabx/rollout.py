@@ -74,13 +74,13 @@ def episode(env: TabxEnv, level: EnvParams, key: jax.Array, steps: int,
     """The traceable body of `play_episode` (one env; vmap it for a batch of episodes). A team
     with a network (`(act, initial_hidden, slots)` of a `PolicyTeam`, its controller
     external) acts with `act` on `params`, its recurrent state carried over the episode."""
-    _, state = env.reset(key, level)
+    obs, state = env.reset(key, level)
     playing = [team for team in range(C.NUM_TEAMS) if networks[team] is not None]
 
-    def policy_actions(key, state, hidden):
+    def policy_actions(key, obs, state, hidden):
         if not playing:
             return None, hidden
-        obs, mask = env.observe(state, level), env.action_mask(state, level)
+        mask = env.action_mask(state, level)
         external = jnp.zeros((env.config.num_units,), jnp.int32)
         hidden = list(hidden)
         for team in playing:
@@ -93,18 +93,21 @@ def episode(env: TabxEnv, level: EnvParams, key: jax.Array, steps: int,
         return external, tuple(hidden)
 
     def body(carry, key):
-        state, hidden, total, ended_at = carry
+        obs, state, hidden, total, ended_at = carry
         was_done = state.done
-        external, hidden = policy_actions(key, state, hidden)
+        external, hidden = policy_actions(key, obs, state, hidden)
         actions, state = controlled_actions(key, state, level, external, controllers)
-        _, state, reward, done, info = env.step(key, state, actions, level)
+        obs, state, reward, done, info = env.step(key, state, actions, level)
         ended_at = jnp.where(done & ~was_done, state.step, ended_at)
         out = (state, {k: info[k] for k in ("attacking", "hit")}) if trajectory else None
-        return (state, hidden, total + reward, ended_at), out
+        # Observations are carried only for a policy (scripted teams do without them).
+        return (obs if playing else None, state, hidden, total + reward, ended_at), out
 
     hidden = tuple(None if n is None else n[1]() for n in networks)
-    init = (state, hidden, jnp.zeros(C.NUM_TEAMS), jnp.zeros((), jnp.int32))
-    (state, _, total, ended_at), frames = jax.lax.scan(body, init, jax.random.split(key, steps))
+    init = (obs if playing else None, state, hidden, jnp.zeros(C.NUM_TEAMS),
+            jnp.zeros((), jnp.int32))
+    (_, state, _, total, ended_at), frames = jax.lax.scan(body, init,
+                                                          jax.random.split(key, steps))
     return state, total, ended_at, frames
 
 
@@ -221,7 +224,8 @@ def cmd_rollout(args: argparse.Namespace, loader: PolicyLoader | None = None) ->
         raise UserError(f"scenario {scenario.name!r} has no units (a zone layout): compose it "
                         f"with units, e.g. 3F_vs_3F_{scenario.name}")
     if policy is None:
-        config = config_for([scenario], max_steps=args.max_steps or C.DEFAULT_MAX_STEPS)
+        config = config_for([scenario], max_steps=(C.DEFAULT_MAX_STEPS if args.max_steps is None
+                                                   else args.max_steps))
     else:
         config = policy.env_config
         if args.max_steps is not None and args.max_steps != config.max_steps:
@@ -230,6 +234,8 @@ def cmd_rollout(args: argparse.Namespace, loader: PolicyLoader | None = None) ->
     try:
         level = scenario.to_level(config)
     except ScenarioError as err:
+        if policy is None:
+            raise UserError(str(err)) from None
         raise UserError(f"{policy.label} cannot play {scenario.name!r}: {err} (the policy's "
                         f"EnvConfig: {config})") from None
     profile = args.profile or (policy.profile if policy is not None else None) or DEFAULT_PROFILE
