@@ -163,13 +163,15 @@ def parse_side(text: str, team: int, greedy: bool, loader: PolicyLoader | None) 
     flag = TEAM_FLAGS[team]
     if Path(text).is_dir():
         if loader is None:
-            raise UserError(f"{flag}: {text} is a folder; a trained policy (a run folder) "
-                            f"plays from the full command line (`tabx rollout`, "
-                            f"tabx_ued.cli), the simulator's own plays controllers only")
+            raise UserError(f"{flag}: {text} is a folder: playing a trained policy (a run "
+                            f"folder) needs the full command line (`tabx`, tabx_ued.cli); the "
+                            f"simulator's own (`python -m tabx.cli`) plays controllers only")
         try:
             return loader(text, team, greedy)
         except UserError as err:
             raise UserError(f"{flag}: {err}") from None
+    if Path(text).exists():
+        raise UserError(f"{flag}: {text}: not a folder (expected a run folder or a controller)")
     if "/" in text or "\\" in text:
         raise UserError(f"{flag}: {text}: no such run folder")
     try:

@@ -126,7 +126,9 @@ def test_rollout_cli_plays_a_q_learner_trained_on_the_enemies(capsys, tmp_path, 
     assert again.splitlines()[:-1] == out.splitlines()[:-1]  # all but the time taken
 
 
-def test_bad_run_folders_are_one_clear_error(capsys, runs, tmp_path):
+def test_bad_run_folders_are_one_clear_error(capsys, runs, tmp_path, mirror_file):
+    shorter = policy_run(tmp_path / "shorter", tiny_config(**{"env.scenario": mirror_file,
+                                                               "env.max_steps": 16}))
     empty = tmp_path / "empty"
     empty.mkdir()
     damaged = tmp_path / "damaged"
@@ -139,10 +141,17 @@ def test_bad_run_folders_are_one_clear_error(capsys, runs, tmp_path):
         (["--enemy", str(tmp_path / "nowhere")], f"--enemy: {tmp_path / 'nowhere'}: no such "
                                                  f"run folder"),
         (["--ally", str(damaged)], f"--ally: {damaged}"),
+        (["--ally", str(runs / "ally" / CONFIG_FILE)], "config.yaml: not a folder"),
+        (["--enemy", "heuristic:legendary"], "--enemy: 'heuristic:legendary' is not a "
+                                             "controller or a run folder (unknown heuristic "
+                                             "tier"),
         # A 2 v 2 policy on a 4 v 1 scenario.
         (["pingpong", "--ally", str(runs / "ally")], f"{runs / 'ally'} (mappo, update 0) "
                                                      f"cannot play 'pingpong'"),
         (["--ally", str(runs / "ally"), "--max-steps", "100"], "plays episodes of 24 steps"),
+        (["--ally", str(runs / "ally"), "--enemy", str(shorter)],
+         f"{shorter} (mappo, update 0) was trained with EnvConfig(max_allies=2, max_enemies=2, "
+         f"max_zones=0, max_steps=16, "),
         (["crossfire", "--greedy"], "--greedy picks a trained policy's most likely action"),
     ]
     for argv, expected in cases:
@@ -157,5 +166,5 @@ def test_the_simulator_alone_refuses_a_run_folder(capsys, runs):
     code, _, err = cli(capsys, "rollout", "--ally", str(runs / "ally"),
                        command=simulator_cli.main)
     assert code == 2
-    assert f"--ally: {runs / 'ally'} is a folder; a trained policy (a run folder) plays from " \
-           f"the full command line" in err
+    assert f"--ally: {runs / 'ally'} is a folder: playing a trained policy (a run folder) " \
+           f"needs the full command line" in err
