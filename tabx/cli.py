@@ -20,6 +20,7 @@ from collections.abc import Callable, Iterable, Mapping
 from tabx import bench_cli, rollout, tournament
 from tabx.editor import cli as editor_cli
 from tabx.errors import UserError
+from tabx.policy_team import PolicyLoader
 from tabx.scenarios import cli as scenarios_cli
 
 Registrar = Callable[[argparse._SubParsersAction], object]
@@ -32,11 +33,14 @@ ROUTES: Routes = {("eval", "heuristics"): tournament.add_route_parser}
 
 
 def add_simulator_commands(subparsers: argparse._SubParsersAction,
-                           bench_extra: Iterable[Registrar] = ()) -> None:
+                           bench_extra: Iterable[Registrar] = (),
+                           policy_loader: PolicyLoader | None = None) -> None:
     """`tabx scenarios | rollout | bench | editor`; `bench_extra` adds benchmarks of the layers
-    above (see `tabx.bench_cli.add_parser`)."""
+    above (see `tabx.bench_cli.add_parser`), `policy_loader` lets `tabx rollout` play a run
+    folder's trained policy (see `tabx.policy_team`; without it the rollout plays controllers
+    only)."""
     scenarios_cli.add_parser(subparsers)
-    rollout.add_parser(subparsers)
+    rollout.add_parser(subparsers, policy_loader)
     bench_cli.add_parser(subparsers, bench_extra)
     editor_cli.add_parser(subparsers)
 

@@ -1,6 +1,7 @@
 """`tabx`: one entry point whose sub-commands come from the layer that owns each.
 
     tabx scenarios | rollout | bench | editor | eval heuristics     the simulator (tabx.cli)
+    tabx rollout --ally RUN_DIR                  a trained policy (ued.evaluate.load_policy_team)
     tabx buffer ...                                               level_buffer.cli
     tabx levels sample, tabx plot, tabx bench train               ued
     tabx train, tabx eval                                         tabx_ued.run_commands
@@ -18,12 +19,14 @@ from level_buffer import cli as buffer_cli
 from tabx import cli as simulator_cli
 from tabx_ued import run_commands, runs_commands
 from ued import levels_cli, payoff, plot, value_error
+from ued.evaluate import load_policy_team
 from ued.learners.bench import add_train_bench
 from workers.bench import add_ued_bench
 
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
-    simulator_cli.add_simulator_commands(subparsers, bench_extra=[add_train_bench, add_ued_bench])
+    simulator_cli.add_simulator_commands(subparsers, bench_extra=[add_train_bench, add_ued_bench],
+                                         policy_loader=load_policy_team)
     buffer_cli.add_parser(subparsers)
     run_commands.add_parser(subparsers)
     runs_commands.add_parser(subparsers)

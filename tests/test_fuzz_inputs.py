@@ -150,10 +150,10 @@ def edit_config(run: Path, old: str, new: str) -> None:
 
 # What resume and evaluation need: damaged, every command that reads it must stop cleanly.
 #   name -> (harm, what the error line names beyond the run folder, commands)
-CHECK, EVAL, EVAL_AT_2, RESUME, STATUS, LIVE, PLOT = ("check", "eval", "eval@2", "resume",
-                                                      "status", "live", "plot")
-CONFIG_READERS = (CHECK, EVAL, EVAL_AT_2, RESUME)
-CHECKPOINT_READERS = (CHECK, EVAL, EVAL_AT_2, RESUME)
+CHECK, EVAL, EVAL_AT_2, RESUME, STATUS, LIVE, PLOT, ROLLOUT = (
+    "check", "eval", "eval@2", "resume", "status", "live", "plot", "rollout")
+CONFIG_READERS = (CHECK, EVAL, EVAL_AT_2, RESUME, ROLLOUT)
+CHECKPOINT_READERS = (CHECK, EVAL, EVAL_AT_2, RESUME, ROLLOUT)
 SNAPSHOT_READERS = (CHECK, RESUME)
 RUN_DAMAGE = {
     "config missing": (lambda r: remove(r / CONFIG_FILE), r"not a run folder", CONFIG_READERS),
@@ -179,7 +179,7 @@ RUN_DAMAGE = {
     "config unknown method": (lambda r: edit_config(r, "method: robust_plr", "method: robust"),
                               r"ued\.method: must be one of", CONFIG_READERS),
     "no checkpoints": (lambda r: remove(r / CHECKPOINT_DIR), r"no checkpoint yet",
-                       (EVAL, EVAL_AT_2)),
+                       (EVAL, EVAL_AT_2, ROLLOUT)),
     "_METADATA truncated": (lambda r: each_step(r, "checkpoints/{step}/default/_METADATA",
                                                 truncate), r"cannot be restored",
                             CHECKPOINT_READERS),
@@ -242,7 +242,8 @@ def command_line(which: str, run: Path, tmp_path: Path) -> list[str]:
             RESUME: ["train", "--resume", str(run), "--quiet", "--max-updates", "1"],
             STATUS: ["runs", "status", str(run)],
             LIVE: ["runs", "buffer", str(run)],
-            PLOT: ["plot", str(run), "--out", str(tmp_path / "curves.png")]}[which]
+            PLOT: ["plot", str(run), "--out", str(tmp_path / "curves.png")],
+            ROLLOUT: ["rollout", "--ally", str(run), "--steps", "2"]}[which]
 
 
 @pytest.mark.parametrize("damage", list(RUN_DAMAGE))

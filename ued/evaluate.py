@@ -41,6 +41,7 @@ from tabx.env import TabxEnv
 from tabx.intervals import mean_ci, wilson
 from tabx.jit_options import learner_jit
 from tabx.params import EnvConfig, EnvParams, repeat_level
+from tabx.policy_team import PolicyTeam
 from ued.config import TEAMS, ConfigError
 from ued.learners.ppo import PPOLearner, masked_logits
 from ued.run_folder import TrainedPolicy, load_policy
@@ -114,6 +115,42 @@ def _policy_actions(learner: PPOLearner, params: Any, obs: jax.Array, mask: jax.
     if greedy:
         return jnp.argmax(logits, -1).astype(jnp.int32), hidden
     return jax.random.categorical(key, logits).astype(jnp.int32), hidden
+
+
+def policy_team(policy: TrainedPolicy, team: int, greedy: bool = False) -> PolicyTeam:
+    """`policy` seated on `team` (its own, or the other through the team swap: `seat`) for
+    `tabx rollout` (`tabx.policy_team`): it acts as in `play`, on one env."""
+    env_config = policy.learner.env_config
+    slots = seat(policy, team, env_config)
+    act, initial_hidden = _single_env_policy(policy.learner, slots, greedy)
+    return PolicyTeam(label=str(policy), title=f"{policy.run_dir.name} ({policy.config.algorithm})",
+                      env_config=env_config, slots=slots, act=act,
+                      initial_hidden=initial_hidden, params=policy.params,
+                      matmul_dtype=policy.learner.ppo.matmul_dtype,
+                      scenario=policy.config.env.scenario[0],
+                      opponent=policy.config.env.opponent, profile=policy.config.env.profile)
+
+
+def load_policy_team(run_dir: str, team: int, greedy: bool = False) -> PolicyTeam:
+    """The `tabx.policy_team.PolicyLoader` of the full command line: the newest checkpoint of
+    `run_dir` seated on `team`. ConfigError (a CheckpointError for a damaged checkpoint)
+    naming the folder when it cannot."""
+    return policy_team(load_policy(run_dir), team, greedy)
+
+
+@functools.lru_cache(maxsize=32)
+def _single_env_policy(learner: PPOLearner, slots: tuple[int, int], greedy: bool
+                       ) -> tuple[Any, Any]:
+    """(act, initial_hidden) of a `PolicyTeam`: `_policy_actions` on a batch of one env. One
+    pair per learner (process-cached), seat and mode, so that rollouts of runs of one config
+    share their compilation."""
+
+    def act(params, obs, mask, hidden, key):
+        actions, hidden = _policy_actions(learner, params, obs[None], mask[None], hidden, key,
+                                          greedy, slots)
+        return actions[0], hidden
+
+    return act, functools.partial(learner.initial_hidden, 1)
 
 
 def play(env_config: EnvConfig, level: EnvParams, ally: Side, enemy: Side, episodes: int,
@@ -211,4 +248,5 @@ def format_result(result: EvalResult, sides: tuple[Side, Side], scenario: str,
 
 
 __all__ = ["TEAM_NAMES", "EvalResult", "Side", "TrainedPolicy", "format_result", "load_policy",
-           "mean_ci", "parse_side", "play", "seat", "team_slots", "wilson"]
+           "load_policy_team", "mean_ci", "parse_side", "play", "policy_team", "seat",
+           "team_slots", "wilson"]
