@@ -1,6 +1,6 @@
 """Training configs: YAML files validated into typed, frozen dataclasses.
 
-A config has six sections and two top-level keys:
+A config has six sections and top-level keys (`seed`, or `seeds` for several):
 
     algorithm: mappo          # mappo | ippo | mappo_rnd | iql | vdn | qmix
     seed: 0                   # or seeds: [0, 1, 2]: several seeds in one program (PPO family)

@@ -374,7 +374,8 @@ def train_marl_seeds(config: TrainConfig, run_dir: Path, *, resume: bool = False
     trains as a run with `seed: s` does (to float rounding: batched matrix products may sum
     in another order). A checkpoint holds the stacked state and keys: `--resume` continues
     every seed. Each seed logs to its own `RUN_DIR/seed-<s>/` (TensorBoard events, the same
-    tags as a single-seed run); the progress line and `callback` see the mean over seeds."""
+    tags as a single-seed run); the progress line and `callback` see the mean over seeds
+    (`callback` gets the stacked train states)."""
     stream = sys.stderr if stream is None else stream
     seeds = config.seeds
     env_config, levels = training_levels(config)
