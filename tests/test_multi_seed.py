@@ -252,3 +252,15 @@ def test_plot_draws_the_mean_and_standard_error_over_seeds(tmp_path, capsys):
     assert "wrote 1 panels (loss/total)" in capsys.readouterr().out
     assert main(["plot", str(tmp_path / "nothing"), "--out", str(tmp_path / "c.png")]) == 2
     assert "nor a multi-seed run (no seed-<s>/ folders)" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_each_seed_logs_its_own_value_error(tmp_path):
+    config = multi_config(**{"run.value_error_every": 2, "run.value_error_states": 8,
+                             "run.value_error_rollouts": 4})
+    run = train(config, run_dir=tmp_path / "run", progress=False)
+    for seed in SEEDS:
+        points = read_scalars(seed_dir(run, seed))["value_error/duel2a1f/mean_abs_error"]
+        assert [s for s, _ in points] == [2 * config.learner.steps_per_update,
+                                          4 * config.learner.steps_per_update]
+        assert all(v >= 0 for _, v in points)

@@ -294,17 +294,33 @@ class LocalDriver(Driver):
                      progress=progress, stream=stream, callback=callback)
 
 
-def write_marl_header(stream: TextIO, config: TrainConfig, run_dir: Path, resume: bool,
-                      start: int) -> None:
-    """The line a plain MARL run starts with: what trains on what, where, for how long."""
-    what = "resuming" if resume else "training"
-    seeds = (f", seeds {', '.join(map(str, config.seeds))} in one program" if config.seeds
-             else "")
-    stream.write(f"{what} {config.algorithm} on {', '.join(config.env.scenario)} "
-                 f"({config.env.team} vs {config.env.opponent}) in {run_dir}; "
-                 f"{config.learner.num_updates} updates of {config.learner.steps_per_update:,} "
-                 f"steps{seeds}{f', from update {start}' if start else ''}\n")
-    stream.flush()
+def start_marl(config: TrainConfig, run_dir: Path, checkpoints: Any, train_state: Any,
+               key: jax.Array, *, resume: bool, max_updates: int | None, progress: bool,
+               stream: TextIO) -> tuple[Any, jax.Array, int, int, Progress | None]:
+    """Where a plain MARL run starts: with `resume`, the newest intact checkpoint's train
+    state and key (shaped as `train_state` and `key`: a multi-seed run's are stacked), else
+    those given; and the line saying what trains on what. (train state, key, first update,
+    update to stop after, progress bar or None)."""
+    start = 0
+    restored = (restore_intact(run_dir, checkpoints, train_state, snapshots=False,
+                               needs_buffer=False, stream=stream, key_template=key)
+                if resume else None)
+    if restored is not None:
+        checkpoints.reload()
+        train_state, key, start = restored
+    num_updates = config.learner.num_updates
+    stop = num_updates if max_updates is None else min(num_updates, start + max_updates)
+    bar = Progress(num_updates, stream) if progress else None
+    if progress:
+        what = "resuming" if resume else "training"
+        seeds = (f", seeds {', '.join(map(str, config.seeds))} in one program" if config.seeds
+                 else "")
+        stream.write(f"{what} {config.algorithm} on {', '.join(config.env.scenario)} "
+                     f"({config.env.team} vs {config.env.opponent}) in {run_dir}; "
+                     f"{num_updates} updates of {config.learner.steps_per_update:,} steps"
+                     f"{seeds}{f', from update {start}' if start else ''}\n")
+        stream.flush()
+    return train_state, key, start, stop, bar
 
 
 def train_marl(config: TrainConfig, run_dir: Path, *, resume: bool = False,
@@ -324,17 +340,10 @@ def train_marl(config: TrainConfig, run_dir: Path, *, resume: bool = False,
     key = jax.random.key(config.seed)
     key, k_init = jax.random.split(key)
     train_state = learner.init(k_init)
-    start = 0
     checkpoints = open_checkpoints(run_dir, config)
-    restored = (restore_intact(run_dir, checkpoints, train_state, snapshots=False,
-                               needs_buffer=False, stream=stream) if resume else None)
-    if restored is not None:
-        checkpoints.reload()
-        train_state, key, start = restored
-    stop = num_updates if max_updates is None else min(num_updates, start + max_updates)
-    bar = Progress(num_updates, stream) if progress else None
-    if progress:
-        write_marl_header(stream, config, run_dir, resume, start)
+    train_state, key, start, stop, bar = start_marl(
+        config, run_dir, checkpoints, train_state, key, resume=resume, max_updates=max_updates,
+        progress=progress, stream=stream)
 
     writer = SummaryWriter(run_dir / EVENTS_DIR)
     try:
@@ -384,18 +393,10 @@ def train_marl_seeds(config: TrainConfig, run_dir: Path, *, resume: bool = False
     num_updates = ppo.num_updates
     keys, init_keys = split_seed_keys(seed_keys(seeds))
     train_states = learner.init_seeds(init_keys)
-    start = 0
     checkpoints = open_checkpoints(run_dir, config)
-    restored = (restore_intact(run_dir, checkpoints, train_states, snapshots=False,
-                               needs_buffer=False, stream=stream, key_template=keys)
-                if resume else None)
-    if restored is not None:
-        checkpoints.reload()
-        train_states, keys, start = restored
-    stop = num_updates if max_updates is None else min(num_updates, start + max_updates)
-    bar = Progress(num_updates, stream) if progress else None
-    if progress:
-        write_marl_header(stream, config, run_dir, resume, start)
+    train_states, keys, start, stop, bar = start_marl(
+        config, run_dir, checkpoints, train_states, keys, resume=resume,
+        max_updates=max_updates, progress=progress, stream=stream)
 
     writers = [SummaryWriter(seed_dir(run_dir, seed)) for seed in seeds]
     try:
@@ -544,4 +545,4 @@ def branch_text(counts: dict[Branch, int], buffer_size: int | None) -> str:
 
 __all__ = ["LocalDriver", "UEDRun", "branch_text", "evaluators_for", "level_service_for",
            "level_summary", "local_workers",
-           "train_marl", "train_marl_seeds", "train_ued", "write_marl_header"]
+           "start_marl", "train_marl", "train_marl_seeds", "train_ued"]
