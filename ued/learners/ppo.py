@@ -239,7 +239,6 @@ class PPOLearner:
         self._score_jit = None
         self._init_jit = None
         self._update_seeds_jit = None
-        self._init_seeds_jit = None
 
     def jit(self, fn: Any, **jit_kwargs: Any) -> Any:
         """`jax.jit` with the compiler options for this learner's networks
@@ -530,10 +529,12 @@ class PPOLearner:
 
     def init_seeds(self, keys: jax.Array) -> TrainState:
         """Fresh train states of several seeds, stacked on a leading seed axis: entry i is
-        `init(keys[i])`. One jitted program for all of them."""
-        if self._init_seeds_jit is None:
-            self._init_seeds_jit = self.jit(jax.vmap(self._init))
-        return self._init_seeds_jit(keys)
+        `init(keys[i])`, bit for bit. Each seed runs `init`'s program in turn (initialisation
+        happens once a run): a vmapped initialisation would batch the orthogonal
+        initialisers' QR decompositions, and on a CPU with two devices that batched program
+        was seen to hang for MAPPO+RND's networks."""
+        states = [self.init(key) for key in keys]
+        return jax.tree.map(lambda *leaves: jnp.stack(leaves), *states)
 
     def update_seeds(self, train_states: TrainState, levels: EnvParams, keys: jax.Array
                      ) -> tuple[TrainState, dict[str, jax.Array], RolloutStats]:
