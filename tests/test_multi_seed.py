@@ -33,10 +33,10 @@ def multi_config(seeds=SEEDS, **overrides):
 
 def test_seeds_round_trip_and_single_seed_files_keep_their_form():
     config = multi_config()
-    assert config.seeds == SEEDS and config.seed_list == SEEDS
+    assert config.seeds == SEEDS
     assert "seeds:\n- 3\n- 5\n" in config.to_yaml()
     single = tiny_config()
-    assert single.seed_list == (3,) and "seeds" not in single.to_yaml()
+    assert single.seeds == () and "seeds" not in single.to_yaml()
 
 
 @pytest.mark.parametrize(("overrides", "message"), [
@@ -164,6 +164,10 @@ def test_a_seed_folder_is_that_seeds_policy(trained, capsys):
     (full / "seed-4").mkdir()
     with pytest.raises(ConfigError, match="this run has no seed 4 \\(its seeds: 3, 5\\)"):
         load_policy(full / "seed-4")
+    from ued.payoff import side_labels
+
+    assert side_labels([str(seed_dir(full, 3)), str(seed_dir(full, 5)), "random"]) == [
+        "full/seed-3", "full/seed-5", "random"]
     assert main(["eval", str(full)]) == 2
     assert "name one by its folder" in capsys.readouterr().err
     assert main(["runs", "check", str(full)]) == 0

@@ -425,11 +425,6 @@ class TrainConfig:
                f"{supported}; a UED run (ued.method: {self.ued.method}) trains one seed per run "
                "(give `seed`)")
 
-    @property
-    def seed_list(self) -> tuple[int, ...]:
-        """The seeds this config trains: `seeds`, or the one `seed`."""
-        return self.seeds or (self.seed,)
-
     def _validate_algorithm_settings(self) -> None:
         """Settings the algorithm would ignore are mistakes: PPO's on a Q-learner, the
         `qlearning` section on PPO, QMIX's mixer on IQL or VDN."""
