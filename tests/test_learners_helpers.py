@@ -68,18 +68,19 @@ def tiny_levels() -> EnvParams:
     return jax.tree.map(jnp.asarray, repeat_level(duel_level(), TINY["learner"]["num_envs"]))
 
 
-def restore_both_and_compare(full: Path, part: Path, template: Any) -> tuple[Any, int]:
+def restore_both_and_compare(full: Path, part: Path, template: Any,
+                             key_template: Any = None) -> tuple[Any, int]:
     """Restore the newest checkpoints of two run folders (`full` and `part`) against
-    `template`, assert that their train states and keys are equal bit for bit, and return
-    (train state of `full`, its update)."""
+    `template` (and `key_template`: a multi-seed run's keys), assert that their train states
+    and keys are equal bit for bit, and return (train state of `full`, its update)."""
     import numpy as np
 
     from ued.checkpoint import Checkpoints
     from ued.run_folder import CHECKPOINT_DIR
 
     with Checkpoints(full / CHECKPOINT_DIR) as a, Checkpoints(part / CHECKPOINT_DIR) as b:
-        state_a, key_a, n_a = a.restore(template)
-        state_b, key_b, n_b = b.restore(template)
+        state_a, key_a, n_a = a.restore(template, key_template=key_template)
+        state_b, key_b, n_b = b.restore(template, key_template=key_template)
     assert n_a == n_b
     for x, y in zip(jax.tree.leaves(state_a), jax.tree.leaves(state_b), strict=True):
         assert np.array_equal(np.asarray(x), np.asarray(y))

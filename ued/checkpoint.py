@@ -65,13 +65,16 @@ class Checkpoints:
         step = self._manager.metadata(int(update))
         return dict(getattr(step, "custom_metadata", None) or {})
 
-    def restore(self, template: Any, update: int | None = None) -> tuple[Any, jax.Array, int]:
+    def restore(self, template: Any, update: int | None = None,
+                key_template: jax.Array | None = None) -> tuple[Any, jax.Array, int]:
         """(train state, key, update) of checkpoint `update` (default: the newest), with the
-        structure of `template` (a train state of the same learner)."""
+        structure of `template` (a train state of the same learner) and the key's shape that
+        of `key_template` (default: one key; a multi-seed run stores one per seed)."""
         update = self.latest() if update is None else update
         if update is None:
             raise CheckpointError(f"{self.directory}: no checkpoint")
-        key_shape = jax.random.key_data(jax.random.key(0)).shape
+        key_template = jax.random.key(0) if key_template is None else key_template
+        key_shape = jax.random.key_data(key_template).shape
         abstract = {"train_state": jax.tree.map(ocp.utils.to_shape_dtype_struct, template),
                     "key": jax.ShapeDtypeStruct(key_shape, np.uint32)}
         _quiet_abandoned_reads()

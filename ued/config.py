@@ -1,9 +1,9 @@
 """Training configs: YAML files validated into typed, frozen dataclasses.
 
-A config has six sections and two top-level keys:
+A config has six sections and top-level keys (`seed`, or `seeds` for several):
 
     algorithm: mappo          # mappo | ippo | mappo_rnd | iql | vdn | qmix
-    seed: 0
+    seed: 0                   # or seeds: [0, 1, 2]: several seeds in one program (PPO family)
     env:     {scenario, team, opponent, max_steps, profile}
     learner: {PPO hyperparameters, num_envs, num_steps, total_timesteps}
     qlearning: {replay buffer, epsilon, target network, mixer}   (iql, vdn, qmix only)
@@ -47,6 +47,7 @@ PPO_ONLY_FIELDS = ("gae_lambda", "clip_eps", "clip_value", "ent_coef", "vf_coef"
                    "num_minibatches", "normalize_advantages")
 MATMUL_DTYPES = ("bfloat16", "float32")  # learner.matmul_dtype
 TEAMS = ("ally", "enemy")
+MAX_SEED = 2**63  # `seeds`: what jax.random.key takes
 
 
 @dataclass(frozen=True)
@@ -356,6 +357,9 @@ class TrainConfig:
 
     algorithm: str = "mappo"
     seed: int = 0
+    # Several seeds of one plain MARL run trained side by side in one compiled program
+    # (vmapped over seeds; workers.local.train_marl_seeds). Empty: the one `seed`.
+    seeds: tuple[int, ...] = ()
     env: EnvSection = field(default_factory=EnvSection)
     learner: PPOConfig = field(default_factory=PPOConfig)
     qlearning: QLearningConfig = field(default_factory=QLearningConfig)
@@ -381,6 +385,7 @@ class TrainConfig:
         self.ued.validate()
         self.levels.validate()
         self.ray.validate()
+        self._validate_seeds()
         _check(not self.run.value_error_every or self.algorithm in PPO_ALGORITHMS,
                "run.value_error_every", f"the value error compares a value head with Monte-Carlo "
                f"returns; {self.algorithm} has no value head")
@@ -398,6 +403,27 @@ class TrainConfig:
                    "the generated heuristic parameters (levels.free includes heuristic): use "
                    "'heuristic' (the level's own parameters)")
         return self
+
+    def _validate_seeds(self) -> None:
+        """`seeds`: distinct non-negative integers, for a plain MARL run of the PPO family."""
+        if not self.seeds:
+            return
+        for seed in self.seeds:
+            _check(0 <= seed < MAX_SEED, "seeds", f"seeds must be integers in [0, 2**63), got "
+                   f"{seed}")
+            _check(self.seeds.count(seed) == 1, "seeds",
+                   f"seeds must be distinct, got {seed} more than once")
+        _check(self.seed == 0, "seed", f"a multi-seed config lists its seeds in `seeds` only; "
+               f"drop seed: {self.seed} (seeds: {list(self.seeds)})")
+        supported = (f"several seeds train in one program for the PPO learners "
+                     f"({', '.join(PPO_ALGORITHMS)}) on plain MARL runs")
+        _check(self.algorithm in PPO_ALGORITHMS, "seeds",
+               f"{supported}; {self.algorithm} trains one seed per run (give `seed`)")
+        _check(not self.ray.enabled, "seeds",
+               f"{supported} on the local driver; ray.enabled trains one seed per run")
+        _check(not self.ued.enabled, "seeds",
+               f"{supported}; a UED run (ued.method: {self.ued.method}) trains one seed per run "
+               "(give `seed`)")
 
     def _validate_algorithm_settings(self) -> None:
         """Settings the algorithm would ignore are mistakes: PPO's on a Q-learner, the
@@ -437,6 +463,10 @@ class TrainConfig:
     def to_dict(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)
         out["env"]["scenario"] = list(self.env.scenario)
+        if self.seeds:
+            out["seeds"] = list(self.seeds)
+        else:  # a single-seed config's file (and its hash, ued.run_folder) has no `seeds`
+            del out["seeds"]
         out["ued"]["eval_suites"] = list(self.ued.eval_suites)
         out["levels"] = self.levels.to_dict()
         return out
@@ -531,6 +561,10 @@ def _build(cls: type, data: Any, prefix: str) -> Any:
         if key not in fields:
             raise _unknown(full, list(fields))
         tp = hints[key]
+        if full == "seeds" and (not isinstance(value, Sequence) or isinstance(value, str)
+                                or not value):
+            raise ConfigError(f"seeds: expected a non-empty list of seeds, e.g. [0, 1, 2], got "
+                              f"{_shown(value)}")
         if dataclasses.is_dataclass(tp):
             values[key] = _build(tp, value, full)
         else:

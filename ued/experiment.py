@@ -6,6 +6,8 @@ run folder's policy loader) builds these the same way, through this module.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import jax
 import jax.numpy as jnp
 
@@ -49,6 +51,21 @@ def learner_for(config: TrainConfig, env_config: EnvConfig | None = None) -> PPO
                         config.env.opponent, q=q)
 
 
+def seed_keys(seeds: Sequence[int]) -> jax.Array:
+    """One PRNG key per seed, stacked on a leading axis: entry i is `jax.random.key(seeds[i])`,
+    the key a single-seed run of that seed starts its key chain from."""
+    return jax.random.wrap_key_data(jnp.stack([jax.random.key_data(jax.random.key(s))
+                                               for s in seeds]))
+
+
+@jax.jit
+def split_seed_keys(keys: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """`key, k = jax.random.split(key)` of every seed's key chain at once (keys stacked on a
+    leading seed axis, `seed_keys`): (the chains' next keys, the keys to use now)."""
+    pairs = jax.vmap(jax.random.split)(keys)
+    return pairs[:, 0], pairs[:, 1]
+
+
 def check_devices(config: TrainConfig) -> None:
     """ConfigError if this machine has fewer devices than `learner.num_devices` asks for."""
     from ued.learners.ppo import local_devices
@@ -59,4 +76,5 @@ def check_devices(config: TrainConfig) -> None:
         raise ConfigError(str(err)) from None
 
 
-__all__ = ["check_devices", "learner_for", "scenario_levels", "training_levels"]
+__all__ = ["check_devices", "learner_for", "scenario_levels", "seed_keys",
+           "split_seed_keys", "training_levels"]

@@ -98,10 +98,16 @@ class PayoffTable:
 
 
 def side_labels(texts: list[str]) -> list[str]:
-    """Short unique labels: a run folder's name, a controller as written; repeats get #2, #3."""
+    """Short unique labels: a run folder's name (`RUN/seed-<s>` for a seed of a multi-seed
+    run), a controller as written; repeats get #2, #3."""
+    from ued.run_folder import split_seed_dir
+
     labels, seen = [], {}
     for text in texts:
         base = Path(text).name if Path(text).is_dir() else text
+        run, seed = split_seed_dir(text)
+        if seed is not None:
+            base = f"{run.name}/{base}"
         seen[base] = seen.get(base, 0) + 1
         labels.append(base if seen[base] == 1 else f"{base}#{seen[base]}")
     return labels

@@ -7,16 +7,27 @@ One panel per tag (x: env steps), one line per run. Tags are TensorBoard scalar 
 runs' `events/` folders, with `*` as a wildcard (`eval/*/mean_win_rate`: every suite's mean).
 Default tags: the training win rate, the zero-shot suites' mean win rates, and for UED runs
 the buffer size and mean score.
+
+A multi-seed run (`seeds:`; its events in `RUN_DIR/seed-<s>/`) draws as one line, the mean
+over its seeds, in a band of one standard error of that mean (sample standard deviation over
+the seeds / sqrt(seeds)), as the paper's figures show their seeds. At each step the mean and
+the error are over the seeds that logged the tag there (a NaN, e.g. a win rate of a rollout
+in which no episode ended, is not logged). `RUN_DIR/seed-<s>` plots that seed alone.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from tabx.errors import UserError
+
+Scalars = dict[str, list[tuple[int, float]]]  # tag -> [(step, value), ...] (read_scalars)
 
 DEFAULT_TAGS = ("episode/win_rate", "eval/*/mean_win_rate", "buffer/size",
                 "buffer/score_mean")
@@ -32,33 +43,80 @@ def matching(tags: list[str], pattern: str) -> list[str]:
     return sorted(t for t in tags if fnmatch.fnmatchcase(t, pattern))
 
 
-def load_runs(run_dirs: list[str]) -> dict[str, dict[str, list[tuple[int, float]]]]:
-    """Run folder name -> its scalars (tag -> [(step, value)])."""
-    from ued.run_folder import EVENTS_DIR
+@dataclass(frozen=True)
+class Curve:
+    """One run's line in one panel: at each step, the mean over the run's seeds that logged
+    the tag there, its standard error (0 where fewer than two did) and that seed count."""
+
+    steps: np.ndarray
+    mean: np.ndarray
+    stderr: np.ndarray
+    seeds: np.ndarray
+
+
+def seed_folders(run: Path) -> list[Path]:
+    """The `seed-<s>` event folders of a multi-seed run, by seed; [] for any other folder."""
+    from ued.run_folder import folder_seed
+
+    found = [p for p in run.iterdir() if p.is_dir() and folder_seed(p) is not None]
+    return sorted(found, key=folder_seed)
+
+
+def load_runs(run_dirs: list[str]) -> dict[str, list[Scalars]]:
+    """Run folder name -> the scalars of each of its seeds (one for a single-seed run, or a
+    multi-seed run's `RUN_DIR/seed-<s>` folder)."""
+    from ued.run_folder import EVENTS_DIR, folder_seed
     from ued.tensorboard import read_scalars
 
     out = {}
     for run in run_dirs:
-        events = Path(run) / EVENTS_DIR
-        if not events.is_dir():
-            raise UserError(f"{run}: not a run folder (no events/ folder)")
-        out[Path(run).name] = read_scalars(events)
-    if not any(out.values()):
-        raise UserError(f"{', '.join(map(str, run_dirs))}: no scalars in events/ (no event "
-                        f"files yet, or only empty or damaged ones)")
+        path = Path(run)
+        if (folder_seed(path) is not None and path.is_dir()
+                and not (path / EVENTS_DIR).is_dir()):
+            # one seed of a multi-seed run: its event files
+            out[f"{path.parent.name}/{path.name}"] = [read_scalars(path)]
+            continue
+        folders = ([path / EVENTS_DIR] if (path / EVENTS_DIR).is_dir()
+                   else seed_folders(path) if path.is_dir() else [])
+        if not folders:
+            raise UserError(f"{run}: not a run folder (no events/ folder), nor a multi-seed "
+                            f"run (no seed-<s>/ folders)")
+        out[path.name] = [read_scalars(folder) for folder in folders]
+    if not any(any(seed) for seed in out.values()):
+        raise UserError(f"{', '.join(map(str, run_dirs))}: no scalars in their event folders "
+                        f"(no event files yet, or only empty or damaged ones)")
     return out
 
 
-def plot_runs(runs: dict[str, dict[str, list[tuple[int, float]]]], patterns: list[str],
-              out: str) -> list[str]:
-    """Draw one panel per matched tag; returns the tags drawn."""
+def curve(seeds: list[Scalars], tag: str) -> Curve | None:
+    """The mean and standard error over `seeds` of `tag` at every step any of them logged it
+    (a step logged twice by one seed, as after a resume, counts with its last value); None
+    when none did."""
+    per_seed = [dict(sorted(scalars.get(tag, []), key=lambda p: p[0])) for scalars in seeds]
+    steps = np.array(sorted({step for points in per_seed for step in points}), np.int64)
+    if not steps.size:
+        return None
+    values = np.array([[points.get(int(step), np.nan) for step in steps]
+                       for points in per_seed], np.float64)
+    present = np.isfinite(values)
+    count = present.sum(0)
+    mean = np.nansum(values, 0) / count
+    sq = np.nansum(np.square(values - mean), 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        stderr = np.where(count > 1, np.sqrt(sq / np.maximum(count - 1, 1) / count), 0.0)
+    return Curve(steps, mean, stderr, count)
+
+
+def plot_runs(runs: dict[str, list[Scalars]], patterns: list[str], out: str
+              ) -> dict[str, dict[str, Curve]]:
+    """Draw one panel per matched tag, one line per run (a band of one standard error for a
+    run of several seeds); returns what was drawn: tag -> run name -> Curve."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-
-    all_tags = sorted({tag for scalars in runs.values() for tag in scalars})
+    all_tags = sorted({tag for seeds in runs.values() for scalars in seeds for tag in scalars})
     tags: list[str] = []
     for pattern in patterns:
         for tag in matching(all_tags, pattern):
@@ -70,22 +128,30 @@ def plot_runs(runs: dict[str, dict[str, list[tuple[int, float]]]], patterns: lis
     columns = min(2, len(tags))
     rows = math.ceil(len(tags) / columns)
     fig, axes = plt.subplots(rows, columns, figsize=(6 * columns, 3.2 * rows), squeeze=False)
+    drawn: dict[str, dict[str, Curve]] = {}
     for ax, tag in zip(axes.flat, tags, strict=False):
-        for name, scalars in runs.items():
-            points = scalars.get(tag)
-            if points:
-                steps, values = zip(*sorted(points), strict=True)
-                ax.plot(steps, values, label=name, marker="." if len(points) < 30 else None)
+        drawn[tag] = {}
+        for name, seeds in runs.items():
+            line = curve(seeds, tag)
+            if line is None:
+                continue
+            drawn[tag][name] = line
+            label = name if len(seeds) == 1 else f"{name} ({len(seeds)} seeds, mean \u00b1 s.e.)"
+            (artist,) = ax.plot(line.steps, line.mean, label=label,
+                                marker="." if len(line.steps) < 30 else None)
+            if len(seeds) > 1:
+                ax.fill_between(line.steps, line.mean - line.stderr, line.mean + line.stderr,
+                                color=artist.get_color(), alpha=0.25, linewidth=0)
         ax.set_title(tag, fontsize=10)
         ax.set_xlabel("env steps")
         ax.grid(alpha=0.3)
     for ax in list(axes.flat)[len(tags):]:
         ax.axis("off")
-    if len(runs) > 1:
+    if len(runs) > 1 or any(len(seeds) > 1 for seeds in runs.values()):
         axes.flat[0].legend(fontsize=8)
     fig.tight_layout()
     save_figure(fig, out, dpi=100)
-    return tags
+    return drawn
 
 
 def save_figure(fig: Any, out: str | Path, dpi: int = 120, **savefig: Any) -> Path:
@@ -105,14 +171,16 @@ def save_figure(fig: Any, out: str | Path, dpi: int = 120, **savefig: Any) -> Pa
 def cmd_plot(args: argparse.Namespace) -> int:
     if not args.out.lower().endswith(".png"):
         raise UserError(f"--out must name a .png file, got {args.out!r}")
-    tags = plot_runs(load_runs(args.runs), args.tag or list(DEFAULT_TAGS), args.out)
+    tags = list(plot_runs(load_runs(args.runs), args.tag or list(DEFAULT_TAGS), args.out))
     print(f"wrote {len(tags)} panels ({', '.join(tags)}) to {args.out}")
     return 0
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("plot", help="learning curves of run folders as a PNG")
-    p.add_argument("runs", nargs="+", metavar="RUN_DIR", help="run folders (tabx train)")
+    p.add_argument("runs", nargs="+", metavar="RUN_DIR",
+                   help="run folders (tabx train); a multi-seed run draws its seeds' mean and "
+                        "standard error, RUN_DIR/seed-<s> one seed")
     p.add_argument("--tag", action="append", metavar="TAG",
                    help="a scalar tag to plot (repeatable; * matches, e.g. 'eval/*/mean_win_rate'"
                         f"); default: {', '.join(DEFAULT_TAGS)}")
@@ -120,5 +188,5 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_plot)
 
 
-__all__ = ["DEFAULT_TAGS", "add_parser", "load_runs", "matching", "plot_runs",
-           "save_figure"]
+__all__ = ["DEFAULT_TAGS", "Curve", "add_parser", "curve", "load_runs", "matching",
+           "plot_runs", "save_figure", "seed_folders"]

@@ -125,17 +125,19 @@ def format_duration(seconds: float) -> str:
     return f"{h}h{m:02d}m" if h else f"{m}m{s:02d}s"
 
 
-def log_update(writer: SummaryWriter, bar: Progress | None, callback, done: int,
+def log_update(writer: SummaryWriter | None, bar: Progress | None, callback, done: int,
                train_state: TrainState, metrics: dict[str, Any], steps_per_update: int,
                steps_per_s: float, num_updates: int, last: bool, extra: str = "",
                eta_steps_per_s: float | None = None) -> None:
     """One logged update: TensorBoard scalars, the progress line (its ETA from
-    `eta_steps_per_s` where given: `ThroughputClock.eta_steps_per_s`), the callback."""
+    `eta_steps_per_s` where given: `ThroughputClock.eta_steps_per_s`), the callback. No
+    `writer`: the caller writes the scalars (a multi-seed run: one writer per seed)."""
     values = {k: float(v) for k, v in metrics.items()}
     if math.isfinite(steps_per_s):
         values["time/steps_per_s"] = steps_per_s
     steps = done * steps_per_update
-    writer.scalars(values, step=steps)
+    if writer is not None:
+        writer.scalars(values, step=steps)
     if bar is not None:
         rate = steps_per_s if math.isfinite(steps_per_s) and steps_per_s > 0 else math.nan
         eta_rate = rate if eta_steps_per_s is None else eta_steps_per_s

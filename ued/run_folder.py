@@ -6,6 +6,9 @@
     RUN_DIR/            run.dir/<run name>-<YYYYmmdd-HHMMSS>/
       config.yaml       the resolved config (every field, defaults included), written atomically
       events/           TensorBoard event files (x axis: env steps)
+      seed-<s>/         a multi-seed run (`seeds:`): each seed's event files in place of
+                        events/; as a policy address (`tabx eval RUN_DIR/seed-<s>`), that
+                        seed's policy
       checkpoints/      orbax checkpoints (train state and key chain), the newest
                         `run.keep_checkpoints` kept
       levels/           UED runs: level-buffer snapshots, one per checkpoint (docs/ued.md)
@@ -24,7 +27,7 @@ import jax
 from tabx.files import atomic_write_text
 from ued.checkpoint import CheckpointError, Checkpoints
 from ued.config import TEAMS, ConfigError, TrainConfig, config_from_dict, read_config_file
-from ued.experiment import learner_for
+from ued.experiment import learner_for, seed_keys
 from ued.learners.ppo import PPOLearner
 
 CONFIG_FILE = "config.yaml"
@@ -32,6 +35,30 @@ EVENTS_DIR = "events"
 CHECKPOINT_DIR = "checkpoints"
 LEVELS_DIR = "levels"
 SET_ASIDE_DIR = "set-aside"  # files a resume or a restart moved away, kept for inspection
+SEED_DIR_PREFIX = "seed-"  # RUN_DIR/seed-<s>/: seed s of a multi-seed run
+
+
+def seed_dir(run_dir: str | Path, seed: int) -> Path:
+    """The folder of seed `seed` of a multi-seed run: its TensorBoard events."""
+    return Path(run_dir) / f"{SEED_DIR_PREFIX}{seed}"
+
+
+def folder_seed(path: str | Path) -> int | None:
+    """The seed a folder named `seed-<s>` is of; None for any other name."""
+    name = Path(path).name
+    digits = name[len(SEED_DIR_PREFIX):]
+    return int(digits) if name.startswith(SEED_DIR_PREFIX) and digits.isdigit() else None
+
+
+def split_seed_dir(path: str | Path) -> tuple[Path, int | None]:
+    """(run folder, seed) of a policy address: a run folder itself (seed None), or the
+    `seed-<s>` folder of a multi-seed run (its parent holds the run's config.yaml)."""
+    path = Path(path)
+    seed = folder_seed(path)
+    if (seed is not None and not (path / CONFIG_FILE).is_file()
+            and (path.parent / CONFIG_FILE).is_file()):
+        return path.parent, seed
+    return path, None
 
 
 def new_run_dir(config: TrainConfig) -> Path:
@@ -105,6 +132,8 @@ def run_summary(run_dir: str | Path) -> str:
     config = read_run_config(run_dir)
     digest = config_hash(config)
     method = f", ued {config.ued.method}" if config.ued.enabled else ""
+    if config.seeds:
+        method += f", seeds {', '.join(map(str, config.seeds))}"
     lines = [f"{run_dir}", f"  config       {CONFIG_FILE}: {config.algorithm}{method} on "
                            f"{', '.join(config.env.scenario)}, {config.learner.num_updates} "
                            f"updates; sha256 {digest[:12]}"]
@@ -136,23 +165,37 @@ class TrainedPolicy:
     learner: PPOLearner
     params: Any
     update: int
+    seed: int | None = None  # the seed of a multi-seed run this policy is
 
     @property
     def team(self) -> int:
         return TEAMS.index(self.config.env.team)
 
     def __str__(self) -> str:
-        return f"{self.run_dir} ({self.config.algorithm}, update {self.update})"
+        seed = "" if self.seed is None else f", seed {self.seed}"
+        return f"{self.run_dir} ({self.config.algorithm}, update {self.update}{seed})"
 
 
 def load_policy(run_dir: str | Path, checkpoint: int | None = None) -> TrainedPolicy:
-    """The policy of a run folder at its newest (or the given) checkpoint."""
-    run_dir = Path(run_dir)
+    """The policy of a run folder at its newest (or the given) checkpoint. A multi-seed run
+    has one policy per seed: `run_dir` names one by its folder, `RUN_DIR/seed-<s>`."""
+    address = Path(run_dir)
+    run_dir, seed = split_seed_dir(address)
     config = read_run_config(run_dir)
+    if config.seeds and seed is None:
+        raise ConfigError(f"{run_dir}: a run of seeds {', '.join(map(str, config.seeds))}, "
+                          f"one policy each: name one by its folder, e.g. "
+                          f"{seed_dir(run_dir, config.seeds[0])}")
+    if seed is not None and seed not in config.seeds:
+        raise ConfigError(f"{address}: this run has no seed {seed} (its seeds: "
+                          f"{', '.join(map(str, config.seeds))})")
     learner = learner_for(config)
     # The parameters alone: their shapes need no allocation, and the rest of the train state
     # (a Q-learner's replay buffer: GBs) is not read.
-    template = jax.eval_shape(learner.init_params, jax.random.key(0))
+    if seed is None:
+        template = jax.eval_shape(learner.init_params, jax.random.key(0))
+    else:  # every seed's parameters, stacked on a leading axis
+        template = jax.eval_shape(jax.vmap(learner.init_params), seed_keys(config.seeds))
     with open_checkpoints(run_dir, config, create=False) as ckpts:
         if ckpts.latest() is None:
             raise ConfigError(f"{run_dir}: no checkpoint yet")
@@ -164,9 +207,13 @@ def load_policy(run_dir: str | Path, checkpoint: int | None = None) -> TrainedPo
         except CheckpointError as err:
             raise CheckpointError(f"{err}; `tabx runs check {run_dir}` lists the intact "
                                   f"checkpoints, `--checkpoint N` picks one") from None
-    return TrainedPolicy(run_dir, config, learner, params, update)
+    if seed is not None:
+        index = config.seeds.index(seed)
+        params = jax.tree.map(lambda x: x[index], params)
+    return TrainedPolicy(address, config, learner, params, update, seed)
 
 
-__all__ = ["CHECKPOINT_DIR", "CONFIG_FILE", "EVENTS_DIR", "LEVELS_DIR", "SET_ASIDE_DIR",
-           "TrainedPolicy", "checkpoint_metadata", "config_hash", "create_run_dir",
-           "load_policy", "new_run_dir", "open_checkpoints", "read_run_config", "run_summary"]
+__all__ = ["CHECKPOINT_DIR", "CONFIG_FILE", "EVENTS_DIR", "LEVELS_DIR", "SEED_DIR_PREFIX",
+           "SET_ASIDE_DIR", "TrainedPolicy", "checkpoint_metadata", "config_hash",
+           "create_run_dir", "folder_seed", "load_policy", "new_run_dir", "open_checkpoints",
+           "read_run_config", "run_summary", "seed_dir", "split_seed_dir"]

@@ -23,11 +23,13 @@ parameters and buffer equal an uninterrupted run's.
 A plain run's loop is `key, k = split(key); train_state, metrics, _ = learner.update(
 train_state, levels, k)`; a checkpoint stores the train state and the key after an update, so
 a resumed run's parameters equal an uninterrupted run's bit for bit. Updates run back to back
-on the device; metrics come back to the host only every `run.log_every` updates.
+on the device; metrics come back to the host only every `run.log_every` updates. A config with
+`seeds` runs that loop for every seed at once, vmapped in one program (`train_marl_seeds`).
 """
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 from typing import Any, TextIO
@@ -41,11 +43,11 @@ from tabx import constants as C
 from tabx.params import EnvParams, stack_levels
 from ued.config import ConfigError, TrainConfig
 from ued.curricula import SFL, Branch, Curriculum, make_curriculum
-from ued.experiment import learner_for, scenario_levels, training_levels
+from ued.experiment import learner_for, scenario_levels, seed_keys, split_seed_keys, training_levels
 from ued.learners.ppo import PPOLearner
 from ued.levels import LevelGenerator
 from ued.progress import Progress, ThroughputClock, log_update
-from ued.run_folder import EVENTS_DIR, LEVELS_DIR, checkpoint_metadata, open_checkpoints
+from ued.run_folder import EVENTS_DIR, LEVELS_DIR, checkpoint_metadata, open_checkpoints, seed_dir
 from ued.suites import load_suite
 from ued.tensorboard import SummaryWriter
 from workers.driver import Callback, Driver
@@ -292,12 +294,45 @@ class LocalDriver(Driver):
                      progress=progress, stream=stream, callback=callback)
 
 
+def start_marl(config: TrainConfig, run_dir: Path, checkpoints: Any, train_state: Any,
+               key: jax.Array, *, resume: bool, max_updates: int | None, progress: bool,
+               stream: TextIO) -> tuple[Any, jax.Array, int, int, Progress | None]:
+    """Where a plain MARL run starts: with `resume`, the newest intact checkpoint's train
+    state and key (shaped as `train_state` and `key`: a multi-seed run's are stacked), else
+    those given; and the line saying what trains on what. (train state, key, first update,
+    update to stop after, progress bar or None)."""
+    start = 0
+    restored = (restore_intact(run_dir, checkpoints, train_state, snapshots=False,
+                               needs_buffer=False, stream=stream, key_template=key)
+                if resume else None)
+    if restored is not None:
+        checkpoints.reload()
+        train_state, key, start = restored
+    num_updates = config.learner.num_updates
+    stop = num_updates if max_updates is None else min(num_updates, start + max_updates)
+    bar = Progress(num_updates, stream) if progress else None
+    if progress:
+        what = "resuming" if resume else "training"
+        seeds = (f", seeds {', '.join(map(str, config.seeds))} in one program" if config.seeds
+                 else "")
+        stream.write(f"{what} {config.algorithm} on {', '.join(config.env.scenario)} "
+                     f"({config.env.team} vs {config.env.opponent}) in {run_dir}; "
+                     f"{num_updates} updates of {config.learner.steps_per_update:,} steps"
+                     f"{seeds}{f', from update {start}' if start else ''}\n")
+        stream.flush()
+    return train_state, key, start, stop, bar
+
+
 def train_marl(config: TrainConfig, run_dir: Path, *, resume: bool = False,
                max_updates: int | None = None, progress: bool = True,
                stream: TextIO | None = None, callback: Callback | None = None) -> Path:
     """Run (or continue) the plain MARL run of `config` in `run_dir` (which holds its
-    config.yaml): one learner on the config's scenarios."""
+    config.yaml): one learner on the config's scenarios; several seeds in one program when
+    the config lists `seeds` (`train_marl_seeds`)."""
     stream = sys.stderr if stream is None else stream
+    if config.seeds:
+        return train_marl_seeds(config, run_dir, resume=resume, max_updates=max_updates,
+                                progress=progress, stream=stream, callback=callback)
     env_config, levels = training_levels(config)
     learner = learner_for(config, env_config)
     ppo = config.learner
@@ -305,22 +340,10 @@ def train_marl(config: TrainConfig, run_dir: Path, *, resume: bool = False,
     key = jax.random.key(config.seed)
     key, k_init = jax.random.split(key)
     train_state = learner.init(k_init)
-    start = 0
     checkpoints = open_checkpoints(run_dir, config)
-    restored = (restore_intact(run_dir, checkpoints, train_state, snapshots=False,
-                               needs_buffer=False, stream=stream) if resume else None)
-    if restored is not None:
-        checkpoints.reload()
-        train_state, key, start = restored
-    stop = num_updates if max_updates is None else min(num_updates, start + max_updates)
-    bar = Progress(num_updates, stream) if progress else None
-    if progress:
-        what = "resuming" if resume else "training"
-        stream.write(f"{what} {config.algorithm} on {', '.join(config.env.scenario)} "
-                     f"({config.env.team} vs {config.env.opponent}) in {run_dir}; "
-                     f"{num_updates} updates of {ppo.steps_per_update:,} steps"
-                     f"{f', from update {start}' if start else ''}\n")
-        stream.flush()
+    train_state, key, start, stop, bar = start_marl(
+        config, run_dir, checkpoints, train_state, key, resume=resume, max_updates=max_updates,
+        progress=progress, stream=stream)
 
     writer = SummaryWriter(run_dir / EVENTS_DIR)
     try:
@@ -349,16 +372,81 @@ def train_marl(config: TrainConfig, run_dir: Path, *, resume: bool = False,
     return run_dir
 
 
+def train_marl_seeds(config: TrainConfig, run_dir: Path, *, resume: bool = False,
+                     max_updates: int | None = None, progress: bool = True,
+                     stream: TextIO | None = None, callback: Callback | None = None) -> Path:
+    """`train_marl` of a config with `seeds`: every seed's learner trains in one compiled
+    program (`PPOLearner.update_seeds`, the update vmapped over seeds), on the same levels.
+
+    The train states and the key chains are stacked on a leading seed axis; seed i's chain
+    is a single-seed run's, from `jax.random.key(seeds[i])`, so seed s of a multi-seed run
+    trains as a run with `seed: s` does (to float rounding: batched matrix products may sum
+    in another order). A checkpoint holds the stacked state and keys: `--resume` continues
+    every seed. Each seed logs to its own `RUN_DIR/seed-<s>/` (TensorBoard events, the same
+    tags as a single-seed run); the progress line and `callback` see the mean over seeds
+    (`callback` gets the stacked train states)."""
+    stream = sys.stderr if stream is None else stream
+    seeds = config.seeds
+    env_config, levels = training_levels(config)
+    learner = learner_for(config, env_config)
+    ppo = config.learner
+    num_updates = ppo.num_updates
+    keys, init_keys = split_seed_keys(seed_keys(seeds))
+    train_states = learner.init_seeds(init_keys)
+    checkpoints = open_checkpoints(run_dir, config)
+    train_states, keys, start, stop, bar = start_marl(
+        config, run_dir, checkpoints, train_states, keys, resume=resume,
+        max_updates=max_updates, progress=progress, stream=stream)
+
+    writers = [SummaryWriter(seed_dir(run_dir, seed)) for seed in seeds]
+    try:
+        # Throughput and the progress line count the env steps of all seeds; each seed's
+        # events have its own steps on the x axis, as a single-seed run's.
+        all_steps = ppo.steps_per_update * len(seeds)
+        clock = ThroughputClock(start, all_steps)
+        for update in range(start, stop):
+            keys, update_keys = split_seed_keys(keys)
+            train_states, metrics, _ = learner.update_seeds(train_states, levels, update_keys)
+            done = update + 1
+            last = done == stop
+            if clock.first_pending or done % config.run.log_every == 0 or last:
+                per_seed = {k: np.asarray(v) for k, v in jax.device_get(metrics).items()}
+                timing, rate = clock.read(done)
+                steps = done * ppo.steps_per_update
+                for i, writer in enumerate(writers):
+                    writer.scalars({**{k: float(v[i]) for k, v in per_seed.items()}, **timing,
+                                    "time/steps_per_s": rate}, step=steps)
+                mean = {k: float(np.nanmean(v)) if np.isfinite(v).any() else math.nan
+                        for k, v in per_seed.items()}
+                log_update(None, bar, callback, done, train_states, {**mean, **timing},
+                           all_steps, rate, num_updates, last,
+                           eta_steps_per_s=clock.eta_steps_per_s)
+            every = config.run.value_error_every
+            if every and (done % every == 0 or last):
+                for i, (seed, writer) in enumerate(zip(seeds, writers, strict=True)):
+                    params = jax.tree.map(lambda x, i=i: x[i], train_states.params)
+                    log_value_error(config, learner, params, writer, done, seed)
+            if done % config.run.checkpoint_every == 0 or last:
+                checkpoints.save(done, train_states, keys,
+                                 checkpoint_metadata(config, done, policy_version=done))
+    finally:
+        for writer in writers:
+            writer.close()
+        checkpoints.close()
+    return run_dir
+
+
 def log_value_error(config: TrainConfig, learner: PPOLearner, params: Any,
-                    writer: SummaryWriter, done: int) -> None:
+                    writer: SummaryWriter, done: int, seed: int | None = None) -> None:
     """`value_error/<scenario>/{mean_abs_error,ci95,mc_stderr}` of every scenario of the
     config after update `done` (`run.value_error_*`; rollouts of `learner.num_steps`). Its
-    keys derive from the seed and the update, never from the training key chain, so logging
-    it does not change the run."""
+    keys derive from the seed (`seed`, default the config's) and the update, never from the
+    training key chain, so logging it does not change the run."""
     from ued.value_error import value_error
 
     _, levels = scenario_levels(config)
-    base = jax.random.fold_in(jax.random.key(config.seed), done)
+    seed = config.seed if seed is None else seed
+    base = jax.random.fold_in(jax.random.key(seed), done)
     for index, (name, level) in enumerate(zip(config.env.scenario, levels, strict=True)):
         result = value_error(learner, params, learner.prepare_levels(level),
                              jax.random.fold_in(base, index), config.run.value_error_states,
@@ -457,4 +545,4 @@ def branch_text(counts: dict[Branch, int], buffer_size: int | None) -> str:
 
 __all__ = ["LocalDriver", "UEDRun", "branch_text", "evaluators_for", "level_service_for",
            "level_summary", "local_workers",
-           "train_marl", "train_ued"]
+           "start_marl", "train_marl", "train_marl_seeds", "train_ued"]

@@ -94,21 +94,23 @@ def snapshot_problem(levels_dir: Path, step: int, needs_buffer: bool) -> str | N
     return None
 
 
-def checkpoint_problem(checkpoints: Checkpoints, template: Any, step: int
-                       ) -> tuple[str | None, Any]:
+def checkpoint_problem(checkpoints: Checkpoints, template: Any, step: int,
+                       key_template: jax.Array | None = None) -> tuple[str | None, Any]:
     """(what keeps checkpoint `step` from restoring or None, the restored (state, key, step))."""
     try:
-        return None, checkpoints.restore(template, step)
+        return None, checkpoints.restore(template, step, key_template)
     except CheckpointError as err:
         return str(err), None
 
 
 def restore_intact(run_dir: Path, checkpoints: Checkpoints, template: Any, *,
-                   snapshots: bool, needs_buffer: bool, stream: TextIO | None
+                   snapshots: bool, needs_buffer: bool, stream: TextIO | None,
+                   key_template: jax.Array | None = None
                    ) -> tuple[Any, jax.Array, int] | None:
     """The newest step whose checkpoint (and, with `snapshots`, level snapshot) is intact:
     (train state, key, step); None when the run has no checkpoint yet. ConfigError when none
-    is intact. Newer steps' files are set aside."""
+    is intact. Newer steps' files are set aside. `key_template`: the shape of the stored key
+    (default one key; `Checkpoints.restore`)."""
     steps = checkpoints.all()
     if not steps:
         # Killed before its first checkpoint (perhaps after that step's snapshot): start over.
@@ -120,7 +122,7 @@ def restore_intact(run_dir: Path, checkpoints: Checkpoints, template: Any, *,
         problem = snapshot_problem(levels_dir, step, needs_buffer) if snapshots else None
         restored = None
         if problem is None:
-            problem, restored = checkpoint_problem(checkpoints, template, step)
+            problem, restored = checkpoint_problem(checkpoints, template, step, key_template)
         if problem is not None:
             problems.append(problem)
             if stream is not None:
@@ -172,10 +174,10 @@ def set_aside(run_dir: Path, step: int, stream: TextIO | None) -> Path | None:
 
 
 def check_run(run_dir: Path, checkpoints: Checkpoints, template: Any, *, snapshots: bool,
-              needs_buffer: bool) -> list[StepCheck]:
+              needs_buffer: bool, key_template: jax.Array | None = None) -> list[StepCheck]:
     """Every checkpointed step of a run folder, oldest first, checked as resume would."""
     levels_dir = run_dir / LEVELS_DIR
-    return [StepCheck(step, checkpoint_problem(checkpoints, template, step)[0],
+    return [StepCheck(step, checkpoint_problem(checkpoints, template, step, key_template)[0],
                       snapshot_problem(levels_dir, step, needs_buffer) if snapshots else None)
             for step in checkpoints.all()]
 
@@ -183,7 +185,7 @@ def check_run(run_dir: Path, checkpoints: Checkpoints, template: Any, *, snapsho
 def check_run_folder(run_dir: str | Path) -> list[StepCheck]:
     """`check_run` for a run folder as it is on disk (its own config says what it keeps)."""
     from ued.curricula import make_curriculum
-    from ued.experiment import learner_for
+    from ued.experiment import learner_for, seed_keys
     from ued.run_folder import open_checkpoints, read_run_config
 
     run_dir = Path(run_dir)
@@ -191,10 +193,16 @@ def check_run_folder(run_dir: str | Path) -> list[StepCheck]:
     ued = config.ued
     uses_buffer = ued.enabled and make_curriculum(ued.method, ued.exploratory_grad_updates,
                                                   ued.sfl_update_freq).uses_buffer
-    template = learner_for(config).init(jax.random.key(0))
+    learner = learner_for(config)
+    keys = None
+    if config.seeds:  # a multi-seed run stores its seeds' states and keys stacked
+        keys = seed_keys(config.seeds)
+        template = learner.init_seeds(keys)
+    else:
+        template = learner.init(jax.random.key(0))
     with open_checkpoints(run_dir, config, create=False) as checkpoints:
         return check_run(run_dir, checkpoints, template, snapshots=ued.enabled,
-                         needs_buffer=uses_buffer)
+                         needs_buffer=uses_buffer, key_template=keys)
 
 
 def format_checks(run_dir: str | Path, checks: list[StepCheck]) -> str:

@@ -238,6 +238,7 @@ class PPOLearner:
         self._update_jit = self.jit(self._update, donate_argnums=0)
         self._score_jit = None
         self._init_jit = None
+        self._update_seeds_jit = None
 
     def jit(self, fn: Any, **jit_kwargs: Any) -> Any:
         """`jax.jit` with the compiler options for this learner's networks
@@ -525,6 +526,35 @@ class PPOLearner:
                              f"minibatches")
         return _on_devices(self._update_jit, self.learner_devices(num_envs), train_state,
                            levels, key)
+
+    def init_seeds(self, keys: jax.Array) -> TrainState:
+        """Fresh train states of several seeds, stacked on a leading seed axis: entry i is
+        `init(keys[i])`, bit for bit. Each seed runs `init`'s program in turn (initialisation
+        happens once a run): a vmapped initialisation would batch the orthogonal
+        initialisers' QR decompositions, and on a CPU with two devices that batched program
+        was seen to hang for MAPPO+RND's networks."""
+        states = [self.init(key) for key in keys]
+        return jax.tree.map(lambda *leaves: jnp.stack(leaves), *states)
+
+    def update_seeds(self, train_states: TrainState, levels: EnvParams, keys: jax.Array
+                     ) -> tuple[TrainState, dict[str, jax.Array], RolloutStats]:
+        """`update` of several seeds at once: `train_states` and `keys` carry a leading seed
+        axis (`init_seeds`, one key per seed), the levels are shared; the results carry the
+        seed axis too (metrics: one value per seed). One compiled program, `update` vmapped
+        over the seeds (each seed's rollout, GAE and minibatch epochs as `update` does them,
+        the seeds side by side in every array op), jitted once per learner and seed count.
+        Entry i equals `update(train_states[i], levels, keys[i])` up to float rounding
+        (batched matrix products may sum in another order). Split over devices and donated
+        as `update`."""
+        num_envs = levels.reward_mode.shape[0]
+        if num_envs % self.ppo.num_minibatches:
+            raise ValueError(f"{num_envs} envs do not split into {self.ppo.num_minibatches} "
+                             f"minibatches")
+        if self._update_seeds_jit is None:
+            self._update_seeds_jit = self.jit(jax.vmap(self._update, in_axes=(0, None, 0)),
+                                              donate_argnums=0)
+        return _on_devices(self._update_seeds_jit, self.learner_devices(num_envs),
+                           train_states, levels, keys)
 
     def _update(self, train_state: TrainState, levels: EnvParams, key: jax.Array
                 ) -> tuple[TrainState, dict[str, jax.Array], RolloutStats]:
