@@ -3,7 +3,7 @@ programs and learner programs.
 
 On XLA:CPU (jaxlib 0.10) the newer MLIR fusion emitters take about twice as long to compile
 the simulator's step as the older loop emitters, and the compiled step runs about as fast
-either way (docs/benchmarks.md, "Compile options for simulator programs"): the
+either way (docs/performance.md, "Compile options for simulator programs"): the
 reconfiguration rollout (10v10 + 6 zones, observations) compiles in 2.2 s instead of 4.3-5.1 s.
 Compile time is what a researcher pays on every new `EnvConfig`, so programs that only run the
 simulator (benchmarks, `tabx rollout`, tournaments, the editor's preview) are compiled with

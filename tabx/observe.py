@@ -85,7 +85,7 @@ def observe(config: EnvConfig, state: EnvState, params: EnvParams) -> jax.Array:
     per-env observation. XLA:CPU copies these pieces in contiguous runs; a single
     constant-index gather reads the source with a stride of one env's values and transposes
     its result, and makes the whole 10v10 + 6 zone rollout step about 18% slower
-    (docs/benchmarks.md, "Observation layout"). Same values, bit for bit
+    (docs/performance.md, "Observation layout"). Same values, bit for bit
     (tests/test_observe_fast.py checks against a per-viewer reference).
     """
     n = config.num_units
