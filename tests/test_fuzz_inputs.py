@@ -231,7 +231,7 @@ RUN_DAMAGE = {
     "events missing": (lambda r: remove(r / "events"), r"no events/ folder", (PLOT,)),
     "events damaged": (lambda r: [p.write_bytes(bytes(range(256)) * 4)
                                   for p in (r / "events").iterdir()],
-                       r"no scalars in events/", (PLOT,)),
+                       r"no scalars in their event folders", (PLOT,)),
 }
 
 
