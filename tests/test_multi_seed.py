@@ -142,6 +142,9 @@ def test_one_program_for_all_seeds_and_each_seed_logs_to_its_folder(trained):
         assert [s for s, _ in scalars["loss/total"]] == steps
         logged[seed] = [v for _, v in scalars["loss/total"]]
         assert "time/first_update_s" in scalars
+        # As a single-seed run: a rate from the second update on, none (not NaN) before.
+        rates = scalars["time/steps_per_s"]
+        assert [s for s, _ in rates] == steps[1:] and all(np.isfinite([v for _, v in rates]))
     assert logged[3] != logged[5]
     single = [v for _, v in read_scalars(singles[0] / "events")["loss/total"]]
     np.testing.assert_allclose(logged[3], single, rtol=1e-3, atol=1e-5)

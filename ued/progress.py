@@ -125,6 +125,15 @@ def format_duration(seconds: float) -> str:
     return f"{h}h{m:02d}m" if h else f"{m}m{s:02d}s"
 
 
+def logged_scalars(metrics: dict[str, Any], steps_per_s: float) -> dict[str, float]:
+    """The scalars an update logs: its metrics as floats, and `time/steps_per_s` once there
+    is a rate (none on the first update, whose time is `time/first_update_s`)."""
+    values = {k: float(v) for k, v in metrics.items()}
+    if math.isfinite(steps_per_s):
+        values["time/steps_per_s"] = steps_per_s
+    return values
+
+
 def log_update(writer: SummaryWriter | None, bar: Progress | None, callback, done: int,
                train_state: TrainState, metrics: dict[str, Any], steps_per_update: int,
                steps_per_s: float, num_updates: int, last: bool, extra: str = "",
@@ -132,9 +141,7 @@ def log_update(writer: SummaryWriter | None, bar: Progress | None, callback, don
     """One logged update: TensorBoard scalars, the progress line (its ETA from
     `eta_steps_per_s` where given: `ThroughputClock.eta_steps_per_s`), the callback. No
     `writer`: the caller writes the scalars (a multi-seed run: one writer per seed)."""
-    values = {k: float(v) for k, v in metrics.items()}
-    if math.isfinite(steps_per_s):
-        values["time/steps_per_s"] = steps_per_s
+    values = logged_scalars(metrics, steps_per_s)
     steps = done * steps_per_update
     if writer is not None:
         writer.scalars(values, step=steps)
@@ -152,4 +159,4 @@ def log_update(writer: SummaryWriter | None, bar: Progress | None, callback, don
         callback(done, train_state, values)
 
 
-__all__ = ["Progress", "ThroughputClock", "format_duration", "log_update"]
+__all__ = ["Progress", "ThroughputClock", "format_duration", "log_update", "logged_scalars"]

@@ -46,7 +46,7 @@ from ued.curricula import SFL, Branch, Curriculum, make_curriculum
 from ued.experiment import learner_for, scenario_levels, seed_keys, split_seed_keys, training_levels
 from ued.learners.ppo import PPOLearner
 from ued.levels import LevelGenerator
-from ued.progress import Progress, ThroughputClock, log_update
+from ued.progress import Progress, ThroughputClock, log_update, logged_scalars
 from ued.run_folder import EVENTS_DIR, LEVELS_DIR, checkpoint_metadata, open_checkpoints, seed_dir
 from ued.suites import load_suite
 from ued.tensorboard import SummaryWriter
@@ -414,8 +414,8 @@ def train_marl_seeds(config: TrainConfig, run_dir: Path, *, resume: bool = False
                 timing, rate = clock.read(done)
                 steps = done * ppo.steps_per_update
                 for i, writer in enumerate(writers):
-                    writer.scalars({**{k: float(v[i]) for k, v in per_seed.items()}, **timing,
-                                    "time/steps_per_s": rate}, step=steps)
+                    writer.scalars(logged_scalars(
+                        {**{k: v[i] for k, v in per_seed.items()}, **timing}, rate), step=steps)
                 mean = {k: float(np.nanmean(v)) if np.isfinite(v).any() else math.nan
                         for k, v in per_seed.items()}
                 log_update(None, bar, callback, done, train_states, {**mean, **timing},
