@@ -1,9 +1,11 @@
-"""The `tabx bench` command and its simulator sub-commands (env, scale, reconfig, compare).
+"""The `tabx bench` command and its simulator sub-commands (env, profile, scale, reconfig,
+compare).
 
-The measuring code lives in `tabx.bench` (one configuration at a time) and `tabx.bench_suite`
-(sweeps and the SMAX comparison); this module only turns command lines into calls. Layers
-above the simulator add their own benchmarks through `extra` (`tabx bench train` from
-`ued.learners.bench`, `tabx bench ued` from `workers`), so the simulator never imports them.
+The measuring code lives in `tabx.bench` (one configuration at a time), `tabx.bench_profile`
+(per-stage step time) and `tabx.bench_suite` (sweeps and the SMAX comparison); this module
+only turns command lines into calls. Layers above the simulator add their own benchmarks
+through `extra` (`tabx bench train` from `ued.learners.bench`, `tabx bench ued` from
+`workers`), so the simulator never imports them.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import argparse
 from collections.abc import Callable, Iterable
 
 from tabx.bench import NUM_ENVS, TEAM_SIZES, bench_env
+from tabx.bench_profile import add_profile_parser
 from tabx.bench_suite import (
     SCALE_ENEMIES,
     SCALE_NUM_ENVS,
@@ -49,6 +52,7 @@ def add_parser(subparsers: argparse._SubParsersAction,
                           "benchmark uses heuristic:medium)")
     env.add_argument("--json", help="also write results as JSON lines to this file")
     env.set_defaults(func=bench_env)
+    add_profile_parser(which, _team_sizes, int_at_least(1), int_at_least(0))
     add_suite_parsers(which)
     for add in extra:
         add(which)
