@@ -360,39 +360,7 @@ def bench_profile(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_profile_parser(which: argparse._SubParsersAction, team_sizes, positive, at_least_zero
-                       ) -> None:
-    """`tabx bench profile` in the bench sub-command group (argument types from bench_cli)."""
-    profile = which.add_parser(
-        "profile", help="per-stage time of a simulator step from XLA:CPU's kernel profile")
-    profile.add_argument("--team-sizes", type=team_sizes, default=[3, 5, 10],
-                         help="comma-separated units per team (default 3,5,10)")
-    profile.add_argument("--zones", type=at_least_zero, default=6,
-                         help="zones per level (default 6)")
-    profile.add_argument("--num-envs", type=positive, default=1024,
-                         help="envs (default 1024)")
-    profile.add_argument("--steps", type=positive, default=128, help="scan length (default 128)")
-    profile.add_argument("--repeats", type=positive, default=2,
-                         help="timed calls, then as many traced calls (default 2)")
-    profile.add_argument("--no-obs", dest="obs", action="store_false",
-                         help="do not compute observations (random policy; state only)")
-    profile.add_argument("--ally", default="random",
-                         help="ally controller: random, idle, heuristic[:TIER] (default random)")
-    profile.add_argument("--enemy", default="random",
-                         help="enemy controller (default random; e.g. heuristic:medium)")
-    profile.add_argument("--trace-dir",
-                         help="keep the traces and HLO texts in this folder (default: a "
-                              "temporary folder, removed)")
-    profile.add_argument("--debug-stages", action="store_true",
-                         help="list the call chains whose time is left in `other`")
-    profile.add_argument("--bandwidth-mb", type=positive, default=256,
-                         help="array size of the bandwidth measurement (default 256)")
-    profile.add_argument("--json", help="write the profiles as JSON lines to this file")
-    profile.add_argument("--plot", help="write a PNG of stacked stage times to this file")
-    profile.set_defaults(func=bench_profile)
-
-
-__all__ = ["ProfileSpec", "StageProfile", "add_profile_parser", "analyse", "bench_profile",
+__all__ = ["ProfileSpec", "StageProfile", "analyse", "bench_profile",
            "bytes_per_env_step", "format_profile", "measure_bandwidth", "memory_bytes",
            "plot_profiles"]
 
