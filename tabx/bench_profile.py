@@ -301,19 +301,22 @@ def plot_profiles(profiles: list[StageProfile], path: str, title: str = "") -> N
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(8, 5))
-    labels = [f"{p.team_size}v{p.team_size}" for p in profiles]
+    x = np.arange(len(profiles))
     bottom = np.zeros(len(profiles))
     colours = plt.cm.tab10(np.arange(len(STAGES)) % 10)
     for stage, colour in zip(STAGES, colours, strict=True):
         heights = np.array([p.stages_us[stage] / p.num_envs for p in profiles])
-        ax.bar(labels, heights, bottom=bottom, color=colour, label=stage)
+        ax.bar(x, heights, width=0.6, bottom=bottom, color=colour, label=stage)
         bottom += heights
-    ax.plot(labels, [p.wall_untraced_us / p.num_envs for p in profiles], "k_", markersize=40,
-            markeredgewidth=2, label="wall time (untraced)")
+    ax.hlines([p.wall_untraced_us / p.num_envs for p in profiles], x - 0.4, x + 0.4,
+              colors="k", linestyles="--", label="wall time (untraced)")
+    ax.set_xticks(x, [f"{p.team_size}v{p.team_size}" for p in profiles])
+    handles, names = ax.get_legend_handles_labels()
+    ax.legend(handles[::-1], names[::-1], fontsize=7, loc="upper left",
+              bbox_to_anchor=(1.01, 1.0))  # top to bottom as the bars stack
     ax.set_ylabel("microseconds per env step (kernel time)")
     ax.set_xlabel("team size")
     ax.grid(True, axis="y", alpha=0.3)
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     ax.set_title(title or "TABX-UED step profile", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
