@@ -1,9 +1,11 @@
-"""The `tabx bench` command and its simulator sub-commands (env, scale, reconfig, compare).
+"""The `tabx bench` command and its simulator sub-commands (env, profile, scale, reconfig,
+compare).
 
-The measuring code lives in `tabx.bench` (one configuration at a time) and `tabx.bench_suite`
-(sweeps and the SMAX comparison); this module only turns command lines into calls. Layers
-above the simulator add their own benchmarks through `extra` (`tabx bench train` from
-`ued.learners.bench`, `tabx bench ued` from `workers`), so the simulator never imports them.
+The measuring code lives in `tabx.bench` (one configuration at a time), `tabx.bench_profile`
+(per-stage step time) and `tabx.bench_suite` (sweeps and the SMAX comparison); this module
+only turns command lines into calls. Layers above the simulator add their own benchmarks
+through `extra` (`tabx bench train` from `ued.learners.bench`, `tabx bench ued` from
+`workers`), so the simulator never imports them.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import argparse
 from collections.abc import Callable, Iterable
 
 from tabx.bench import NUM_ENVS, TEAM_SIZES, bench_env
+from tabx.bench_profile import bench_profile
 from tabx.bench_suite import (
     SCALE_ENEMIES,
     SCALE_NUM_ENVS,
@@ -40,19 +43,52 @@ def add_parser(subparsers: argparse._SubParsersAction,
                      help="comma-separated env counts (default 1,16,128,1024)")
     env.add_argument("--steps", type=int, default=128, help="scan length (default 128)")
     env.add_argument("--repeats", type=int, default=3, help="timed calls (median; default 3)")
-    env.add_argument("--no-obs", dest="obs", action="store_false",
-                     help="do not compute observations (random policy; state only)")
-    env.add_argument("--ally", default="random",
-                     help="ally controller: random, idle, heuristic[:TIER] (default random)")
-    env.add_argument("--enemy", default="random",
-                     help="enemy controller (default random; the scripted-enemy "
-                          "benchmark uses heuristic:medium)")
+    add_rollout_arguments(env)
     env.add_argument("--json", help="also write results as JSON lines to this file")
     env.set_defaults(func=bench_env)
+    add_profile_parser(which)
     add_suite_parsers(which)
     for add in extra:
         add(which)
     return which
+
+
+def add_rollout_arguments(parser: argparse.ArgumentParser) -> None:
+    """--no-obs, --ally and --enemy: what the benchmark rollout (`tabx.bench.make_rollout`)
+    computes besides the step."""
+    parser.add_argument("--no-obs", dest="obs", action="store_false",
+                        help="do not compute observations (random policy; state only)")
+    parser.add_argument("--ally", default="random",
+                        help="ally controller: random, idle, heuristic[:TIER] (default random)")
+    parser.add_argument("--enemy", default="random",
+                        help="enemy controller (default random; the scripted-enemy "
+                             "benchmark uses heuristic:medium)")
+
+
+def add_profile_parser(which: argparse._SubParsersAction) -> None:
+    profile = which.add_parser(
+        "profile", help="per-stage time of a simulator step from XLA:CPU's kernel profile")
+    profile.add_argument("--team-sizes", type=_team_sizes, default=list(TEAM_SIZES),
+                         help="comma-separated units per team (default 3,5,10)")
+    profile.add_argument("--zones", type=int_at_least(0), default=6,
+                         help="zones per level (default 6)")
+    profile.add_argument("--num-envs", type=int_at_least(1), default=1024,
+                         help="envs (default 1024)")
+    profile.add_argument("--steps", type=int_at_least(1), default=128,
+                         help="scan length (default 128)")
+    profile.add_argument("--repeats", type=int_at_least(1), default=2,
+                         help="timed calls, then as many traced calls (default 2)")
+    add_rollout_arguments(profile)
+    profile.add_argument("--trace-dir",
+                         help="keep the traces and HLO texts in this folder (default: a "
+                              "temporary folder, removed)")
+    profile.add_argument("--debug-stages", action="store_true",
+                         help="list the call chains each stage's time comes from")
+    profile.add_argument("--bandwidth-mb", type=int_at_least(1), default=256,
+                         help="array size of the bandwidth measurement (default 256)")
+    profile.add_argument("--json", help="write the profiles as JSON lines to this file")
+    profile.add_argument("--plot", help="write a PNG of stacked stage times to this file")
+    profile.set_defaults(func=bench_profile)
 
 
 def add_suite_parsers(which: argparse._SubParsersAction) -> None:
@@ -181,4 +217,5 @@ def _controllers(text: str) -> list[str]:
     return parts
 
 
-__all__ = ["BenchRegistrar", "add_parser", "add_suite_parsers", "int_at_least", "int_list"]
+__all__ = ["BenchRegistrar", "add_parser", "add_profile_parser", "add_rollout_arguments",
+           "add_suite_parsers", "int_at_least", "int_list"]
