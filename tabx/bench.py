@@ -28,7 +28,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tabx.controllers import Controller, controlled_actions, with_tiers
+from tabx.controllers import (
+    Controller,
+    controlled_actions_from_words,
+    controller_words,
+    with_tiers,
+)
 from tabx.env import TabxEnv, random_legal_actions
 from tabx.jit_options import simulator_jit
 from tabx.params import EnvConfig, EnvParams, make_level, repeat_level
@@ -100,7 +105,9 @@ def make_rollout(env: TabxEnv, steps: int, with_obs: bool = True,
     With `with_obs`, every step starts by computing the observation of the state it acts on,
     where a policy would consume it, and carries it out of the scan so that XLA keeps it: one
     observation per step taken, none for a start state (the auto-reset's start states are
-    passed in, so the step itself needs no observation). Compiled with
+    passed in, so the step itself needs no observation). Random and scripted controllers draw
+    their randomness for the whole batch from one key per step (`random_legal_actions`,
+    `tabx.controllers.controller_words`), not from a key per env. Compiled with
     `tabx.jit_options.simulator_jit`."""
     plain_random = all(c.kind == "random" for c in controllers)
 
@@ -119,9 +126,10 @@ def make_rollout(env: TabxEnv, steps: int, with_obs: bool = True,
                 masks = jax.vmap(env.action_mask)(states, levels)
                 actions = random_legal_actions(k_act, masks)
             else:
+                words = controller_words(k_act, num_envs, env.num_units)
                 actions, states = jax.vmap(
-                    lambda k, s, p: controlled_actions(k, s, p, None, controllers))(
-                    jax.random.split(k_act, num_envs), states, levels)
+                    lambda w, s, p: controlled_actions_from_words(w, s, p, None, controllers))(
+                    words, states, levels)
             _, states, reward, done, _ = jax.vmap(env.step_autoreset)(
                 jax.random.split(key, num_envs), states, actions, levels, start_states)
             return (key, states, obs, total + reward.sum() + done.sum()), None

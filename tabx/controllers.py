@@ -95,6 +95,24 @@ def controlled_actions(key: jax.Array, state: EnvState, params: EnvParams,
     entries are ignored); it may be None when no team is external. Only the controllers in use
     are computed (the kinds are static).
     """
+    n = params.units.team.shape[0]
+    return controlled_actions_from_words(random_words(key, (2, n)), state, params, external,
+                                         controllers)
+
+
+def controller_words(key: jax.Array, num_envs: int, num_units: int) -> jax.Array:
+    """uint32 (num_envs, 2, num_units): the random words of `controlled_actions_from_words` for
+    a whole batch of envs from one key. Drawing them per env (a key per env, as
+    `controlled_actions` under vmap does) runs threefry for every env, a rolled loop of small
+    kernels on a CPU; this draws one threefry word for the batch (`tabx.rng`)."""
+    return random_words(key, (num_envs, 2, num_units))
+
+
+def controlled_actions_from_words(words: jax.Array, state: EnvState, params: EnvParams,
+                                  external: jax.Array | None, controllers: Sequence[Controller]
+                                  ) -> tuple[jax.Array, EnvState]:
+    """`controlled_actions` with its randomness given: uint32 words (2, N), row 0 for the
+    scripted policy and row 1 for the random one (`controller_words` draws a batch's)."""
     kinds = [c.kind for c in controllers]
     if len(kinds) != C.NUM_TEAMS:
         raise ValueError(f"expected one controller per team ({C.NUM_TEAMS}), got {len(kinds)}")
@@ -105,16 +123,14 @@ def controlled_actions(key: jax.Array, state: EnvState, params: EnvParams,
     by_kind: dict[str, jax.Array] = {"idle": jnp.full((n,), C.IDLE, jnp.int32)}
     if external is not None:
         by_kind["external"] = jnp.asarray(external, jnp.int32)
-    if "heuristic" in kinds or "random" in kinds:
-        # One draw for both controllers (tabx.rng: one threefry word, hashed per unit).
-        bits = random_words(key, (2, n))
     if "heuristic" in kinds:
-        by_kind["heuristic"], state = heuristic_actions_from_bits(bits[0], state, params)
+        by_kind["heuristic"], state = heuristic_actions_from_bits(words[0], state, params)
     if "random" in kinds:
-        by_kind["random"] = pick_legal(to_unit_float(bits[1]), action_mask(state, params))
+        by_kind["random"] = pick_legal(to_unit_float(words[1]), action_mask(state, params))
     if kinds[0] == kinds[1]:
         return by_kind[kinds[0]], state
     return jnp.where(team == C.ALLY, by_kind[kinds[0]], by_kind[kinds[1]]), state
 
 
-__all__ = ["CONTROLLER_KINDS", "Controller", "controlled_actions", "with_tiers"]
+__all__ = ["CONTROLLER_KINDS", "Controller", "controlled_actions", "controlled_actions_from_words",
+           "controller_words", "with_tiers"]

@@ -18,10 +18,17 @@ from envtools import A0, A1, A2, CONFIG, E0, E1, FAR_ENEMY, KEY, N, level, unit,
 from scipy import stats
 
 from tabx import constants as C
-from tabx.controllers import Controller, controlled_actions, with_tiers
+from tabx.controllers import (
+    Controller,
+    controlled_actions,
+    controlled_actions_from_words,
+    controller_words,
+    with_tiers,
+)
 from tabx.env import TabxEnv
 from tabx.heuristic import heuristic_actions, unit_roles
 from tabx.params import EnvParams, heuristic_params
+from tabx.rng import random_words
 
 ENV = TabxEnv(CONFIG)
 # An enemy nobody can see: in a bush that no ally enters (a team needs one living unit).
@@ -291,6 +298,37 @@ def test_controllers_mix_external_heuristic_random():
     assert set(np.asarray(actions)[[A0, A1]]) == {C.IDLE}
     with pytest.raises(ValueError, match="no actions were given"):
         controlled_actions(KEY, state, params, None, ctrl)
+
+
+def test_batch_words_drive_each_env_like_its_own_words():
+    """`controller_words` draws a whole batch's randomness from one key (no threefry per env):
+    every env gets its own words, and an env driven by its row of the batch decides exactly as
+    `controlled_actions_from_words` does for it alone."""
+    params = level([unit("archer", 0, 0), unit("farmer", 0, 5)],
+                   [unit("farmer", 12, 0, math.pi), unit("archer", 12, 5, math.pi)],
+                   heuristic=heuristic_params("random", "novice"))
+    _, state = ENV.reset(KEY, params)
+    envs = 16
+    words = controller_words(KEY, envs, N)
+    assert words.shape == (envs, 2, N) and words.dtype == jnp.uint32
+    assert len({bytes(np.asarray(w)) for w in words}) == envs  # no two envs share their draw
+    np.testing.assert_array_equal(words, controller_words(KEY, envs, N))
+    ctrl = (Controller("random"), Controller("heuristic"))
+    batch = jax.tree.map(lambda x: jnp.broadcast_to(x, (envs, *jnp.shape(x))), (state, params))
+    actions, after = jax.vmap(lambda w, s, p: controlled_actions_from_words(w, s, p, None, ctrl))(
+        words, *batch)
+    for e in (0, 7, 15):
+        alone, alone_state = controlled_actions_from_words(words[e], state, params, None, ctrl)
+        np.testing.assert_array_equal(actions[e], alone)
+        np.testing.assert_array_equal(after.search_turn[e], alone_state.search_turn)
+    # Random allies and epsilon-random enemies differ between envs: the rows are used.
+    assert len({tuple(np.asarray(a)) for a in actions}) > 1
+    # The per-env entry point is the same policy on the words drawn from its key.
+    n = params.units.team.shape[0]
+    direct, _ = controlled_actions(KEY, state, params, None, ctrl)
+    from_words, _ = controlled_actions_from_words(
+        random_words(KEY, (2, n)), state, params, None, ctrl)
+    np.testing.assert_array_equal(direct, from_words)
 
 
 def test_controller_parsing_and_tiers():
