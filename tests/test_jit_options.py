@@ -12,6 +12,7 @@ import pytest
 from tabx import jit_options
 from tabx.bench import make_rollout
 from tabx.bench_suite import host_batch
+from tabx.controllers import Controller, with_tiers
 from tabx.env import TabxEnv
 from tabx.params import EnvConfig
 from tabx.random_levels import random_levels
@@ -25,9 +26,10 @@ def levels():
                                                    max_units=3)[0], 4))
 
 
-def test_cpu_simulator_programs_use_the_older_fusion_emitters():
+def test_cpu_simulator_programs_use_the_older_fusion_emitters_and_fast_min_max():
     assert jax.default_backend() == "cpu"
-    assert jit_options.simulator_compiler_options() == {"xla_cpu_use_fusion_emitters": False}
+    assert jit_options.simulator_compiler_options() == {"xla_cpu_use_fusion_emitters": False,
+                                                        "xla_cpu_enable_fast_min_max": True}
 
 
 def test_default_compiler_on_request_or_on_unmeasured_jaxlib(monkeypatch):
@@ -56,12 +58,16 @@ def test_bfloat16_learner_programs_get_ynnpack_products_on_cpu(monkeypatch):
     assert jit_options.learner_compiler_options("bfloat16") is None
 
 
-def test_simulator_jit_computes_what_plain_jit_computes(levels, monkeypatch):
-    """Same rollout (observations, states, sums) bit for bit with and without the options."""
+@pytest.mark.parametrize("enemy", ["random", "heuristic:medium"])
+def test_simulator_jit_computes_what_plain_jit_computes(levels, monkeypatch, enemy):
+    """Same rollout (observations, states, sums) bit for bit with and without the options,
+    random and scripted enemies."""
     env = TabxEnv(SMALL)
-    tuned = make_rollout(env, 24)(levels, jax.random.key(1))
+    controllers = (Controller("random"), Controller.parse(enemy))
+    levels = with_tiers(levels, controllers)
+    tuned = make_rollout(env, 24, controllers=controllers)(levels, jax.random.key(1))
     monkeypatch.setattr("tabx.bench.simulator_jit", jax.jit)
-    plain = make_rollout(env, 24)(levels, jax.random.key(1))
+    plain = make_rollout(env, 24, controllers=controllers)(levels, jax.random.key(1))
     tuned, plain = jax.tree.leaves(tuned)[1:], jax.tree.leaves(plain)[1:]  # leaf 0: the key
     assert len(tuned) == len(plain)
     for a, b in zip(tuned, plain, strict=True):
