@@ -34,6 +34,7 @@ from tabx.controllers import (
     controller_words,
     with_tiers,
 )
+from tabx.devices import env_devices, env_sharding
 from tabx.env import TabxEnv, random_legal_actions
 from tabx.jit_options import simulator_jit
 from tabx.params import EnvConfig, EnvParams, make_level, repeat_level
@@ -58,6 +59,7 @@ class BenchResult:
     steps_per_s: float
     controllers: str = "random/random"
     load_avg: float | None = None  # 1-minute load average when the run started (shared machines)
+    devices: int = 1  # devices the envs were split over (tabx.devices)
 
 
 @dataclass
@@ -132,14 +134,16 @@ def make_rollout(env: TabxEnv, steps: int, with_obs: bool = True,
                     words, states, levels)
             _, states, reward, done, _ = jax.vmap(env.step_autoreset)(
                 jax.random.split(key, num_envs), states, actions, levels, start_states)
-            return (key, states, obs, total + reward.sum() + done.sum()), None
+            # Per-env sums: a batch split over devices then needs no exchange between them.
+            return (key, states, obs, total + reward.sum(-1) + done), None
 
         if with_obs:
             spec = jax.eval_shape(observe, states, levels)
             obs = jnp.zeros(spec.shape, spec.dtype)
         else:
             obs = jnp.zeros((num_envs, 0), jnp.float32)
-        carry, _ = jax.lax.scan(body, (key, states, obs, jnp.zeros(())), None, length=steps)
+        carry, _ = jax.lax.scan(body, (key, states, obs, jnp.zeros(num_envs)), None,
+                                length=steps)
         return carry
 
     return simulator_jit(rollout)
@@ -147,16 +151,22 @@ def make_rollout(env: TabxEnv, steps: int, with_obs: bool = True,
 
 def run_one(team_size: int, num_zones: int, num_envs: int, steps: int = 128,
             repeats: int = 3, with_obs: bool = True,
-            controllers: tuple[Controller, Controller] = RANDOM_BOTH) -> BenchResult:
+            controllers: tuple[Controller, Controller] = RANDOM_BOTH,
+            devices: int = 0) -> BenchResult:
+    """One configuration, its envs split over `devices` local devices (0: all that split
+    them evenly; `tabx.devices.env_devices`)."""
     config, level = bench_level(team_size, num_zones)
     env = TabxEnv(config)
+    placed = env_devices(num_envs, devices)
     levels = repeat_level(with_tiers(level, controllers), num_envs)
-    levels = jax.tree.map(lambda x: jnp.array(x), levels)  # materialise: a real argument
+    # Materialised on the devices: a real argument, never a constant of the program.
+    levels = jax.device_put(jax.tree.map(np.asarray, levels), env_sharding(placed))
     fn = make_rollout(env, steps, with_obs, controllers)
     load_avg = load_average()
     compile_s, run_s = time_compiled(fn, lambda key: (levels, key), repeats)
     return BenchResult(team_size, num_zones, num_envs, with_obs, steps, compile_s, run_s,
-                       num_envs * steps / run_s, "/".join(map(str, controllers)), load_avg)
+                       num_envs * steps / run_s, "/".join(map(str, controllers)), load_avg,
+                       len(placed))
 
 
 def time_compiled(fn, make_args, repeats: int = 3) -> tuple[float, float]:
@@ -210,23 +220,35 @@ def bench_env(args: argparse.Namespace) -> int:
         controllers = (Controller.parse_scripted(args.ally), Controller.parse_scripted(args.enemy))
     except ValueError as err:
         raise UserError(f"--ally/--enemy: {err}") from None
+    check_devices(args.devices, args.num_envs)
     print(f"# tabx bench env on {machine_summary()}; observations "
           f"{'computed every step' if args.obs else 'not computed (--no-obs)'}; allies "
           f"{controllers[0]}, enemies {controllers[1]}", flush=True)
-    print(f"{'units':>6} {'zones':>5} {'envs':>6} {'compile s':>9} {'run s':>8} "
+    print(f"{'units':>6} {'zones':>5} {'envs':>6} {'devices':>7} {'compile s':>9} {'run s':>8} "
           f"{'steps/s':>12}", flush=True)
     results = []
     configs = [(t, z, n) for t in args.team_sizes for z in args.zones for n in args.num_envs]
     progress = Progress(len(configs))
     for team, zones, envs in configs:
         r = run_one(team, zones, envs, steps=args.steps, repeats=args.repeats, with_obs=args.obs,
-                    controllers=controllers)
+                    controllers=controllers, devices=args.devices)
         results.append(r)
-        print(f"{f'{team}v{team}':>6} {zones:>5} {envs:>6} {r.compile_s:>9.2f} {r.run_s:>8.3f} "
-              f"{r.steps_per_s:>12,.0f}   {progress.step()}", flush=True)
+        print(f"{f'{team}v{team}':>6} {zones:>5} {envs:>6} {r.devices:>7} {r.compile_s:>9.2f} "
+              f"{r.run_s:>8.3f} {r.steps_per_s:>12,.0f}   {progress.step()}", flush=True)
     if args.json:
         write_results(args.json, results)
     return 0
+
+
+def check_devices(devices: int, env_counts: list[int]) -> None:
+    """UserError naming --devices unless every env count splits over `devices` devices."""
+    from tabx.errors import UserError
+
+    for num_envs in env_counts:
+        try:
+            env_devices(num_envs, devices)
+        except ValueError as err:
+            raise UserError(f"--devices: {err}") from None
 
 
 def write_results(path: str, results: list) -> None:

@@ -44,6 +44,7 @@ def add_parser(subparsers: argparse._SubParsersAction,
     env.add_argument("--steps", type=int, default=128, help="scan length (default 128)")
     env.add_argument("--repeats", type=int, default=3, help="timed calls (median; default 3)")
     add_rollout_arguments(env)
+    add_devices_argument(env)
     env.add_argument("--json", help="also write results as JSON lines to this file")
     env.set_defaults(func=bench_env)
     add_profile_parser(which)
@@ -51,6 +52,12 @@ def add_parser(subparsers: argparse._SubParsersAction,
     for add in extra:
         add(which)
     return which
+
+
+def add_devices_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--devices", type=int_at_least(0), default=0,
+                        help="local devices to split the envs over (default 0: all that split "
+                             "them evenly; on a CPU one per core; 1: one device)")
 
 
 def add_rollout_arguments(parser: argparse.ArgumentParser) -> None:
@@ -108,6 +115,7 @@ def add_suite_parsers(which: argparse._SubParsersAction) -> None:
                        help="timed calls (median; default 3)")
     scale.add_argument("--no-obs", dest="obs", action="store_false",
                        help="do not compute observations (random policy; state only)")
+    add_devices_argument(scale)
     scale.add_argument("--json", help="write results as JSON lines to this file")
     scale.add_argument("--plot", help="write a PNG plot (steps/s vs num_envs) to this file")
     scale.set_defaults(func=bench_scale)
@@ -123,6 +131,7 @@ def add_suite_parsers(which: argparse._SubParsersAction) -> None:
     reconfig.add_argument("--seed", type=int, default=0, help="scenario generator seed")
     reconfig.add_argument("--no-obs", dest="obs", action="store_false",
                           help="do not compute observations")
+    add_devices_argument(reconfig)
     reconfig.add_argument("--json", help="write the result as JSON lines to this file")
     reconfig.set_defaults(func=bench_reconfig)
 
@@ -149,6 +158,7 @@ def add_suite_parsers(which: argparse._SubParsersAction) -> None:
     compare.add_argument("--reconfig-steps", type=positive, default=128,
                          help="steps per reconfiguration scenario (default 128)")
     compare.add_argument("--seed", type=int, default=0, help="scenario generator seed")
+    add_devices_argument(compare)
     compare.add_argument("--json", help="write all results as JSON lines to this file")
     compare.add_argument("--plot", help="write a PNG plot to this file")
     compare.set_defaults(func=bench_compare)

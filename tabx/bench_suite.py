@@ -32,6 +32,7 @@ from tabx.bench import (
     BenchResult,
     Progress,
     ReconfigResult,
+    check_devices,
     load_average,
     machine_summary,
     make_rollout,
@@ -40,6 +41,7 @@ from tabx.bench import (
 )
 from tabx.compile_counter import CompileCounter
 from tabx.controllers import Controller
+from tabx.devices import env_devices, env_sharding
 from tabx.env import TabxEnv
 from tabx.params import EnvConfig, EnvParams
 
@@ -57,21 +59,22 @@ TARGET_COMPILE_S = 6.0  # compile of the 10v10 + zones rollout
 
 def run_scale(team_sizes: Sequence[int], num_envs: Sequence[int], enemies: Sequence[str],
               steps: int = 128, repeats: int = 3, with_obs: bool = True, zones: int = 0,
-              log: Callable[[str], None] = print) -> list[BenchResult]:
-    """One `run_one` per (enemy controller, team size, num_envs), with progress lines."""
+              log: Callable[[str], None] = print, devices: int = 0) -> list[BenchResult]:
+    """One `run_one` per (enemy controller, team size, num_envs), with progress lines; the
+    envs split over `devices` local devices (0: all that split them evenly)."""
     controllers = [(Controller("random"), Controller.parse(e)) for e in enemies]
     configs = [(c, t, n) for c in controllers for t in team_sizes for n in num_envs]
-    log(f"{'controllers':>24} {'units':>6} {'envs':>6} {'compile s':>9} {'run s':>8} "
-        f"{'steps/s':>12} {'load':>5}")
+    log(f"{'controllers':>24} {'units':>6} {'envs':>6} {'devices':>7} {'compile s':>9} "
+        f"{'run s':>8} {'steps/s':>12} {'load':>5}")
     progress = Progress(len(configs))
     results = []
     for ctrl, team, envs in configs:
         r = run_one(team, zones, envs, steps=steps, repeats=repeats, with_obs=with_obs,
-                    controllers=ctrl)
+                    controllers=ctrl, devices=devices)
         results.append(r)
-        log(f"{r.controllers:>24} {f'{team}v{team}':>6} {envs:>6} {r.compile_s:>9.2f} "
-            f"{r.run_s:>8.3f} {r.steps_per_s:>12,.0f} {r.load_avg or 0:>5.2f}   "
-            f"{progress.step()}")
+        log(f"{r.controllers:>24} {f'{team}v{team}':>6} {envs:>6} {r.devices:>7} "
+            f"{r.compile_s:>9.2f} {r.run_s:>8.3f} {r.steps_per_s:>12,.0f} "
+            f"{r.load_avg or 0:>5.2f}   {progress.step()}")
     return results
 
 
@@ -133,15 +136,17 @@ def run_reconfig(levels: Sequence[EnvParams], config: EnvConfig, num_envs: int =
                  controllers: tuple[Controller, Controller] = RANDOM_BOTH,
                  log: Callable[[str], None] | None = None,
                  describe: Callable[[EnvParams], str] | None = None,
-                 generate_s: float = 0.0, rollout=None) -> ReconfigResult:
+                 generate_s: float = 0.0, rollout=None, devices: int = 0) -> ReconfigResult:
     """Every level (num_envs copies each) through one compiled `steps`-long rollout, timed from
-    the first call to the last result. `rollout` (a jitted `make_rollout`) may be passed in to
-    share its compiled executable across calls; by default a fresh one is made."""
+    the first call to the last result, the envs split over `devices` local devices (0: all that
+    split them evenly). `rollout` (a jitted `make_rollout`) may be passed in to share its
+    compiled executable across calls; by default a fresh one is made."""
     if not levels:
         raise ValueError("run_reconfig needs at least one level")
     fn = rollout if rollout is not None else make_rollout(TabxEnv(config), steps, with_obs,
                                                           controllers)
     hosts = [host_batch(level, num_envs) for level in levels]
+    placement = env_sharding(env_devices(num_envs, devices))
     keys = [jax.random.key(seed + i) for i in range(len(levels))]
     progress = Progress(len(levels))
     load_avg = load_average()
@@ -150,7 +155,7 @@ def run_reconfig(levels: Sequence[EnvParams], config: EnvConfig, num_envs: int =
         first_s, after_first = 0.0, 0
         for i, host in enumerate(hosts):
             t_i = time.perf_counter()
-            jax.block_until_ready(fn(jax.device_put(host), keys[i]))
+            jax.block_until_ready(fn(jax.device_put(host, placement), keys[i]))
             if i == 0:
                 first_s, after_first = time.perf_counter() - t0, cc.compiles
             if log is not None:
@@ -178,13 +183,14 @@ def bench_reconfig(args: argparse.Namespace) -> int:
           f"x {args.steps} steps each, random actions, observations "
           f"{'computed' if args.obs else 'not computed'}; load average {load_average()}",
           flush=True)
+    check_devices(args.devices, [args.num_envs])
     t0 = time.perf_counter()
     levels = random_levels(args.scenarios, seed=args.seed)
     generate_s = time.perf_counter() - t0
     print(f"generated and validated {len(levels)} levels in {generate_s:.2f} s", flush=True)
     result = run_reconfig(levels, RECONFIG_CONFIG, args.num_envs, args.steps, args.seed,
                           with_obs=args.obs, log=lambda s: print(s, flush=True),
-                          describe=composition, generate_s=generate_s)
+                          describe=composition, generate_s=generate_s, devices=args.devices)
     print(format_reconfig(result), flush=True)
     if args.json:
         write_results(args.json, [reconfig_row(result)])
@@ -216,6 +222,9 @@ class TabxSimulator:
 
     name = "tabx"
 
+    def __init__(self, devices: int = 0):
+        self.devices = devices  # local devices the envs are split over (0: all that divide)
+
     def version(self) -> str:
         import tabx
 
@@ -223,7 +232,8 @@ class TabxSimulator:
 
     def throughput(self, team_size: int, num_envs: int, steps: int, repeats: int,
                    with_obs: bool) -> BenchResult:
-        return run_one(team_size, 0, num_envs, steps=steps, repeats=repeats, with_obs=with_obs)
+        return run_one(team_size, 0, num_envs, steps=steps, repeats=repeats, with_obs=with_obs,
+                       devices=self.devices)
 
     def reconfig(self, scenarios: int, num_envs: int, steps: int, seed: int, with_obs: bool,
                  measure: int | None = None, log: Callable[[str], None] | None = None
@@ -235,6 +245,7 @@ class TabxSimulator:
         levels = random_levels(scenarios, seed=seed)
         generate_s = time.perf_counter() - t0
         return run_reconfig(levels, RECONFIG_CONFIG, num_envs, steps, seed, with_obs, log=log,
+                            devices=self.devices,
                             describe=composition, generate_s=generate_s)
 
 
@@ -385,7 +396,9 @@ def run_compare(ours, peer, team_sizes: Sequence[int], num_envs: int, steps: int
 
 def bench_compare(args: argparse.Namespace) -> int:
     peer = load_peer(args.peer)  # first: fail fast when the extra is not installed
-    ours = TabxSimulator()
+    check_devices(args.devices, [args.num_envs, args.reconfig_envs])
+    ours = TabxSimulator(args.devices)
+    peer.devices = args.devices  # both simulators split their envs alike
     print(f"# tabx bench compare on {machine_summary()}; {peer.name} {peer.version()}; "
           f"random actions, {args.steps}-step scan of vmap(step) with auto-reset into the start "
           f"states, observations {'carried' if args.obs else 'dropped'}; load average "
@@ -428,8 +441,10 @@ def bench_scale(args: argparse.Namespace) -> int:
     print(f"# tabx bench scale on {machine_summary()}; {args.steps}-step scan, median of "
           f"{args.repeats}; observations {'computed every step' if args.obs else 'not computed'}"
           f"; {args.zones} zones; load average {load_average()}", flush=True)
+    check_devices(args.devices, args.num_envs)
     results = run_scale(args.team_sizes, args.num_envs, args.enemy, args.steps, args.repeats,
-                        args.obs, args.zones, log=lambda s: print(s, flush=True))
+                        args.obs, args.zones, log=lambda s: print(s, flush=True),
+                        devices=args.devices)
     if args.json:
         write_results(args.json, [{**asdict(r), "units": 2 * r.team_size} for r in results])
     if args.plot:

@@ -31,6 +31,7 @@ import numpy as np
 
 from tabx.bench import BenchResult, Progress, ReconfigResult, load_average, time_compiled
 from tabx.compile_counter import CompileCounter
+from tabx.devices import env_devices, env_sharding
 from tabx.env import random_legal_actions
 from tabx.peers import INSTALL_HINT, PeerUnavailable
 
@@ -54,7 +55,8 @@ def mixed_types(team_size: int, offset: int = 0) -> list[int]:
     return [(i + offset) % SMAX_UNIT_TYPES for i in range(team_size)]
 
 
-def make_smax_rollout(env: SMAX, num_envs: int, steps: int, with_obs: bool = True):
+def make_smax_rollout(env: SMAX, num_envs: int, steps: int, with_obs: bool = True,
+                      devices: int = 0):
     """jit(key) -> final carry of a `steps`-long scan of `num_envs` SMAX envs, random legal
     actions, auto-reset into the start states. (SMAX has no level argument: the scenario is
     part of the environment object.)"""
@@ -68,9 +70,15 @@ def make_smax_rollout(env: SMAX, num_envs: int, steps: int, with_obs: bool = Tru
         return (jax.tree.map(pick, reset_obs, obs), jax.tree.map(pick, reset_state, state),
                 reward, done, info)
 
+    # The envs split over the devices as ours are (`tabx.devices`): the keys they start from
+    # are placed there, and everything per env follows them.
+    placement = env_sharding(env_devices(num_envs, devices))
+
     def rollout(key: jax.Array):
         key, k_reset = jax.random.split(key)
-        obs, states = jax.vmap(env.reset)(jax.random.split(k_reset, num_envs))
+        reset_keys = jax.lax.with_sharding_constraint(jax.random.split(k_reset, num_envs),
+                                                      placement)
+        obs, states = jax.vmap(env.reset)(reset_keys)
         start_states, start_obs = states, obs
 
         def body(carry, _):
@@ -84,13 +92,17 @@ def make_smax_rollout(env: SMAX, num_envs: int, steps: int, with_obs: bool = Tru
                               for a in agents], axis=1)
             acts = random_legal_actions(k_act, mask)
             actions = {a: acts[:, i] for i, a in enumerate(agents)}
+            step_keys = jax.lax.with_sharding_constraint(jax.random.split(k_step, num_envs),
+                                                         placement)
             new_obs, states, reward, done, _ = jax.vmap(step_autoreset)(
-                jax.random.split(k_step, num_envs), states, actions, start_states, start_obs)
+                step_keys, states, actions, start_states, start_obs)
             obs = new_obs if with_obs else obs
-            total = total + sum(r.sum() for r in reward.values()) + done["__all__"].sum()
+            # Per-env sums, as ours: no exchange between devices every step.
+            total = total + sum(r for r in reward.values()) + done["__all__"]
             return (key, states, obs, total), None
 
-        carry, _ = jax.lax.scan(body, (key, states, obs, jnp.zeros(())), None, length=steps)
+        carry, _ = jax.lax.scan(body, (key, states, obs, jnp.zeros(num_envs)), None,
+                                length=steps)
         return carry
 
     return jax.jit(rollout)
@@ -101,17 +113,21 @@ class SmaxSimulator:
 
     name = "SMAX"
 
+    def __init__(self, devices: int = 0):
+        self.devices = devices  # local devices the envs are split over (0: all that divide)
+
     def version(self) -> str:
         return f"jaxmarl {getattr(jaxmarl, '__version__', '0.2.0')}"
 
     def throughput(self, team_size: int, num_envs: int, steps: int, repeats: int,
                    with_obs: bool) -> BenchResult:
         env = smax_env(mixed_types(team_size), mixed_types(team_size, 3))
-        fn = make_smax_rollout(env, num_envs, steps, with_obs)
+        fn = make_smax_rollout(env, num_envs, steps, with_obs, self.devices)
         load_avg = load_average()
         compile_s, run_s = time_compiled(fn, lambda key: (key,), repeats)
         return BenchResult(team_size, 0, num_envs, with_obs, steps, compile_s, run_s,
-                           num_envs * steps / run_s, "smax:random/random", load_avg)
+                           num_envs * steps / run_s, "smax:random/random", load_avg,
+                           len(env_devices(num_envs, self.devices)))
 
     def reconfig(self, scenarios: int, num_envs: int, steps: int, seed: int, with_obs: bool,
                  measure: int | None = None, log: Callable[[str], None] | None = None):
@@ -130,7 +146,7 @@ class SmaxSimulator:
             for i, (allies, enemies) in enumerate(comps):
                 t_i = time.perf_counter()
                 env = smax_env(allies, enemies)  # a new scenario: a new env, a new compile
-                fn = make_smax_rollout(env, num_envs, steps, with_obs)
+                fn = make_smax_rollout(env, num_envs, steps, with_obs, self.devices)
                 jax.block_until_ready(fn(jax.random.key(seed + i)))
                 if i == 0:
                     first_s, after_first = time.perf_counter() - t0, cc.compiles
