@@ -10,9 +10,10 @@ spread of one program (up to 20 % on the 2-core VM), then hit every commit alike
 
 Same rollout and protocol as `tabx bench env` (random legal actions or the given controllers,
 6 zones, 1024 envs, 128 steps, observations carried), compiled by each checkout's own code and
-compile options. The order of the trees rotates from round to round. Prints per tree and team
-size the median and best env steps/s over the rounds and the ratio of medians to the first
-tree.
+compile options, its envs placed as that checkout's benchmark places them (split over the
+devices where it does, `tabx.devices`). The order of the trees rotates from round to round.
+Prints per tree and team size the median and best env steps/s over the rounds and the ratio of
+medians to the first tree.
 """
 
 from __future__ import annotations
@@ -27,6 +28,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+import tabx  # noqa: F401 - first: its XLA flags (one CPU device per core) before JAX starts
 
 # Run by the child with its checkout first on PYTHONPATH: build, compile and serialise.
 _CHILD = r"""
@@ -57,11 +60,18 @@ def flat(leaves, key_data):
     carry = rollout(jax.tree.unflatten(treedef, leaves), jax.random.wrap_key_data(key_data))
     return jax.tree.leaves(carry)[1:]  # all but the key
 key_data = np.asarray(jax.random.key_data(jax.random.key(0)))
+try:  # placed as this checkout's `tabx bench env` places them
+    from tabx.devices import env_devices, env_sharding
+    devices = len(env_devices(int(envs)))
+    placed = jax.device_put(leaves, env_sharding(env_devices(int(envs))))
+except ImportError:
+    devices, placed = 1, leaves
 compiled = jax.jit(flat, compiler_options=simulator_compiler_options()).lower(
-    leaves, key_data).compile()
+    placed, key_data).compile()
 payload = serialize_executable.serialize(compiled)
 with open(out, "wb") as f:
-    pickle.dump({"payload": payload, "leaves": leaves, "key_data": key_data}, f)
+    pickle.dump({"payload": payload, "leaves": leaves, "key_data": key_data,
+                 "devices": devices}, f)
 """
 
 
@@ -92,7 +102,10 @@ def compile_in(folder: Path, team: int, args: argparse.Namespace, out: Path):
     with open(out, "rb") as f:
         data = pickle.load(f)
     program = serialize_executable.deserialize_and_load(*data["payload"])
-    leaves = [jax.device_put(x) for x in data["leaves"]]
+    from tabx.devices import env_sharding
+
+    placement = env_sharding(tuple(jax.local_devices()[:data.get("devices", 1)]))
+    leaves = [jax.device_put(x, placement) for x in data["leaves"]]
     return program, leaves, data["key_data"]
 
 
