@@ -10,7 +10,7 @@ simulator (benchmarks, `tabx rollout`, tournaments, the editor's preview) are co
 `xla_cpu_use_fusion_emitters=False`. They also get `xla_cpu_enable_fast_min_max`: min and max
 compiled as a compare and a select, without the checks that propagate a NaN operand. The
 simulator's values are finite by construction (safe denominators, clamped health; padding never
-makes NaN), and the step runs 3-8 % faster at 3v3 and 5v5 (docs/performance.md). Learner
+makes NaN), and the 3v3 step ran up to 7 % faster (docs/performance.md). Learner
 programs keep NaN-propagating min/max: a diverging network should show its NaNs.
 
 Learner programs (updates, scoring, evaluation) keep the newer emitters: their network updates
