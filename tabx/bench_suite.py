@@ -352,8 +352,9 @@ def plot_compare(rows: Sequence[CompareRow], path: str, peer_name: str,
     plt.close(fig)
 
 
-def load_peer(name: str):
-    """The peer simulator object; a UserError telling how to install it when it is missing."""
+def load_peer(name: str, devices: int = 0):
+    """The peer simulator object, its envs split over `devices` local devices like ours; a
+    UserError telling how to install it when it is missing."""
     from tabx.errors import UserError
     from tabx.peers import PeerUnavailable
 
@@ -362,7 +363,7 @@ def load_peer(name: str):
     try:
         from tabx.peers.smax import SmaxSimulator
 
-        return SmaxSimulator()
+        return SmaxSimulator(devices)
     except PeerUnavailable as err:
         raise UserError(str(err)) from None
 
@@ -395,10 +396,10 @@ def run_compare(ours, peer, team_sizes: Sequence[int], num_envs: int, steps: int
 
 
 def bench_compare(args: argparse.Namespace) -> int:
-    peer = load_peer(args.peer)  # first: fail fast when the extra is not installed
+    # The peer first: fail fast when the extra is not installed. Both split their envs alike.
+    peer = load_peer(args.peer, args.devices)
     check_devices(args.devices, [args.num_envs, args.reconfig_envs])
     ours = TabxSimulator(args.devices)
-    peer.devices = args.devices  # both simulators split their envs alike
     print(f"# tabx bench compare on {machine_summary()}; {peer.name} {peer.version()}; "
           f"random actions, {args.steps}-step scan of vmap(step) with auto-reset into the start "
           f"states, observations {'carried' if args.obs else 'dropped'}; load average "

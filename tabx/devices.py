@@ -18,6 +18,19 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 ENV_AXIS = "envs"
 
 
+def available_devices(wanted: int = 0) -> list[jax.Device]:
+    """This process's devices of JAX's default backend; ValueError if there are fewer than
+    `wanted` (saying how to ask for more CPU devices)."""
+    available = jax.local_devices()
+    if wanted > len(available):
+        hint = ("; tabx makes one CPU device per core, XLA_FLAGS="
+                "--xla_force_host_platform_device_count=N asks for N"
+                if available[0].platform == "cpu" else "")
+        raise ValueError(f"{wanted} devices asked for, {len(available)} available "
+                         f"({available[0].platform}){hint}")
+    return available
+
+
 def env_devices(num_envs: int, wanted: int = 0) -> tuple[jax.Device, ...]:
     """The local devices a batch of `num_envs` envs is split over: `wanted` of them (an error
     if there are fewer, or if they do not split the envs evenly), or with 0 the most that split
@@ -27,13 +40,7 @@ def env_devices(num_envs: int, wanted: int = 0) -> tuple[jax.Device, ...]:
     if wanted < 0:
         raise ValueError(f"devices must be 0 (all that split the envs evenly) or more, "
                          f"got {wanted}")
-    available = jax.local_devices()
-    if wanted > len(available):
-        hint = ("; tabx makes one CPU device per core, XLA_FLAGS="
-                "--xla_force_host_platform_device_count=N asks for N"
-                if available[0].platform == "cpu" else "")
-        raise ValueError(f"{wanted} devices asked for, {len(available)} available "
-                         f"({available[0].platform}){hint}")
+    available = available_devices(wanted)
     if wanted:
         if num_envs % wanted:
             raise ValueError(f"{num_envs} envs do not split evenly over {wanted} devices")
@@ -47,4 +54,4 @@ def env_sharding(devices: tuple[jax.Device, ...]) -> NamedSharding:
     return NamedSharding(Mesh(np.asarray(devices), (ENV_AXIS,)), PartitionSpec(ENV_AXIS))
 
 
-__all__ = ["ENV_AXIS", "env_devices", "env_sharding"]
+__all__ = ["ENV_AXIS", "available_devices", "env_devices", "env_sharding"]

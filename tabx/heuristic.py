@@ -45,7 +45,7 @@ from tabx.geometry import atan2, in_ellipses, pairwise_offsets, sincos
 from tabx.observe import action_mask, cooldown_ready, pick_legal
 from tabx.params import EnvParams
 from tabx.rng import random_words
-from tabx.selection import materialise, pick_row, row_argmin
+from tabx.selection import index_one_hot, materialise, pick_row, row_argmin
 from tabx.state import EnvState
 
 # Probability per step that a searching unit reverses its rotation. One full turn takes
@@ -136,11 +136,8 @@ def heuristic_actions_from_bits(bits: jax.Array, state: EnvState, params: EnvPar
     side = jnp.where(assassin, -1.0, jnp.where(healer, 0.0, 1.0))
     reach = (u.radius[None, :] + u.radius[:, None]) * side[:, None]  # (N, N)
     move_point = rel + state.facing[None, :, :] * reach[..., None]
-    # Selections read one-hot rows built from the index (a compare per element): XLA fuses
-    # row_argmin's own one-hot, which compares with the row minimum, into every element of the
-    # selection, recomputing the whole key there.
     chosen_index, _, _ = row_argmin(jnp.sum(move_point**2, -1), choosable)
-    chosen = chosen_index[:, None] == jnp.arange(n)[None, :]  # one-hot (N, N)
+    chosen = index_one_hot(chosen_index, n)  # (N, N)
     # Everything read at the chosen target in one row selection (one reduction, not four).
     picked = pick_row(jnp.concatenate(
         [move_point, rel, jnp.broadcast_to(u.radius[None, :, None], (n, n, 1)),
@@ -186,7 +183,7 @@ def heuristic_actions_from_bits(bits: jax.Array, state: EnvState, params: EnvPar
     threat_rel = jnp.where(reference_kite, move_point, rel)
     dist2 = jnp.sum(threat_rel * threat_rel, -1)
     threat_index, _, threatened = row_argmin(dist2, candidates)
-    threat = threat_index[:, None] == jnp.arange(n)[None, :]
+    threat = index_one_hot(threat_index, n)
     threat_at = pick_row(jnp.concatenate([dist2[..., None], rel], -1), threat)  # (N, 3)
     kite = ranger & threatened & (threat_at[:, 0] < (u.attack_range * threshold) ** 2)
     kite_move = _toward(-jnp.where(reference_kite, target_move, threat_at[:, 1:]))
@@ -215,10 +212,10 @@ def heuristic_actions_from_bits(bits: jax.Array, state: EnvState, params: EnvPar
         bush_rel = z.centre[None, :, :] - position[:, None, :]  # (N, Z, 2)
         bush_index, _, _ = row_argmin(jnp.sum(bush_rel**2, -1),
                                       jnp.broadcast_to(bush[None, :], (n, bush.shape[0])))
-        # The choice computed once (`materialise`), then read as a one-hot row: XLA would
-        # otherwise re-derive the row minimum inside every element of the selection below.
+        # The choice computed once (`materialise`): XLA would otherwise re-derive the row
+        # minimum inside every element of the selection below.
         bush_index = materialise(bush_index.astype(jnp.float32)[:, None])[:, 0]
-        nearest_bush = bush_index.astype(jnp.int32)[:, None] == jnp.arange(bush.shape[0])
+        nearest_bush = index_one_hot(bush_index.astype(jnp.int32), bush.shape[0])
         nearest = pick_row(jnp.concatenate(
             [bush_rel, jnp.broadcast_to(z.semi_axes[None], bush_rel.shape)], -1), nearest_bush)
         in_bush = jnp.where(

@@ -39,6 +39,14 @@ def row_argmin(values: jax.Array, valid: jax.Array) -> tuple[jax.Array, jax.Arra
     return index, one_hot, any_valid
 
 
+def index_one_hot(index: jax.Array, n: int) -> jax.Array:
+    """(..., n) bool one-hot rows of integer `index` (...,). Selections (`pick_row`) should read
+    these rather than `row_argmin`'s own one-hot, which compares each key with its row's
+    minimum: XLA fuses that comparison, the minimum and the whole key computation into every
+    element of the selection; an index compare is one operation per element."""
+    return index[..., None] == jnp.arange(n)
+
+
 def pick_row(matrix: jax.Array, one_hot: jax.Array) -> jax.Array:
     """matrix[i, index[i]] for a one-hot (..., n) mask; matrix is (..., n) or (..., n, k)."""
     if matrix.dtype == jnp.bool_:

@@ -253,7 +253,8 @@ def test_compare_rows_need_matching_peer_results():
 def test_compare_cli_with_a_fake_peer(monkeypatch, tmp_path, capsys):
     import tabx.bench_suite as suite
 
-    monkeypatch.setattr(suite, "load_peer", lambda name: FakeSim("SMAX", {3: 1e5, 5: 5e4}, 100))
+    monkeypatch.setattr(suite, "load_peer",
+                        lambda name, devices=0: FakeSim("SMAX", {3: 1e5, 5: 5e4}, 100))
     monkeypatch.setattr(suite, "TabxSimulator",
                         lambda devices=0: FakeSim("tabx", {3: 3e5, 5: 1e5}, 4e3))
     out, png = tmp_path / "c.jsonl", tmp_path / "c.png"

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from tabx.files import atomic_write_text
-from tabx.selection import pick_row, row_argmin
+from tabx.selection import index_one_hot, pick_row, row_argmin
 
 
 @st.composite
@@ -50,6 +50,9 @@ def test_row_argmin_matches_numpy_up_to_near_ties(data):
         if np.count_nonzero(masked[r] == best[r]) == 1 and np.all(
                 (masked[r] == best[r]) | (masked[r] > best[r] * (1 + 2.0**-16) + 1e-30)):
             assert i == np.argmin(masked[r])
+    # The index's own one-hot (what selections read) is row_argmin's, invalid rows included.
+    np.testing.assert_array_equal(np.asarray(index_one_hot(jnp.asarray(index), values.shape[1])),
+                                  one_hot)
 
 
 def test_pick_row_selects_values_vectors_and_flags():

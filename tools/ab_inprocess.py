@@ -29,6 +29,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from ab_bench import commit_of, parse_tree  # tools/, beside this script
+
 import tabx  # noqa: F401 - first: its XLA flags (one CPU device per core) before JAX starts
 
 # Run by the child with its checkout first on PYTHONPATH: build, compile and serialise.
@@ -73,22 +75,6 @@ with open(out, "wb") as f:
     pickle.dump({"payload": payload, "leaves": leaves, "key_data": key_data,
                  "devices": devices}, f)
 """
-
-
-def parse_tree(text: str) -> tuple[str, Path]:
-    name, sep, path = text.partition("=")
-    if not sep or not name or not path:
-        raise argparse.ArgumentTypeError(f"expected NAME=PATH, got {text!r}")
-    folder = Path(path).resolve()
-    if not (folder / "tabx" / "__init__.py").is_file():
-        raise argparse.ArgumentTypeError(f"{folder} is not a checkout of this project")
-    return name, folder
-
-
-def commit_of(folder: Path) -> str:
-    result = subprocess.run(["git", "-C", str(folder), "rev-parse", "--short", "HEAD"],
-                            capture_output=True, text=True)
-    return result.stdout.strip() or "?"
 
 
 def compile_in(folder: Path, team: int, args: argparse.Namespace, out: Path):

@@ -46,6 +46,7 @@ from flax import struct
 
 from tabx import constants as C
 from tabx.controllers import Controller, controlled_actions, with_tiers
+from tabx.devices import available_devices
 from tabx.env import TabxEnv
 from tabx.jit_options import learner_jit
 from tabx.params import EnvConfig, EnvParams
@@ -700,15 +701,11 @@ _ENVS = "envs"  # the mesh axis data-parallel learners split their envs over
 
 def local_devices(wanted: int = 0) -> list[jax.Device]:
     """This process's devices (of JAX's default backend); ValueError naming
-    `learner.num_devices` if there are fewer than `wanted`."""
-    available = jax.local_devices()
-    if wanted > len(available):
-        hint = ("; tabx makes one CPU device per core, XLA_FLAGS="
-                "--xla_force_host_platform_device_count=N asks for N"
-                if available[0].platform == "cpu" else "")
-        raise ValueError(f"learner.num_devices: {wanted} devices asked for, "
-                         f"{len(available)} available ({available[0].platform}){hint}")
-    return available
+    `learner.num_devices` if there are fewer than `wanted` (`tabx.devices.available_devices`)."""
+    try:
+        return available_devices(wanted)
+    except ValueError as err:
+        raise ValueError(f"learner.num_devices: {err}") from None
 
 
 @functools.lru_cache(maxsize=8)
