@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 
 from tabx import constants as C
+from tabx.observe_kernel import assemble_observation
 from tabx.params import EnvConfig, EnvParams
 from tabx.state import EnvState
 
@@ -37,15 +38,21 @@ ZONE_TYPE_SCALE = 3.0
 TWO_PI = 2.0 * jnp.pi
 
 
+def inverse_half_arena(params: EnvParams) -> jax.Array:
+    """(2,) 1 / (arena size / 2): positions are scaled by this product rather than divided by
+    half the arena, one rounding rule in every program (XLA:CPU turned such a division into
+    this product in some programs and not in others, a last-bit difference)."""
+    return 1.0 / (0.5 * params.physics.arena_size)
+
+
 def unit_features(state: EnvState, params: EnvParams) -> jax.Array:
     """(N, 14) own-style features of every unit, absolute positions, not masked."""
     u = params.units
-    half = 0.5 * params.physics.arena_size
     alive = state.alive.astype(jnp.float32)
     return jnp.concatenate([
         (state.health / HEALTH_SCALE)[:, None],
         (state.health / jnp.maximum(u.max_health, 1e-6))[:, None],
-        state.position / half,
+        state.position * inverse_half_arena(params),
         (state.heading / TWO_PI)[:, None],
         (u.attack_range / RANGE_SCALE)[:, None],
         (u.damage / DAMAGE_SCALE)[:, None],
@@ -62,10 +69,9 @@ def unit_features(state: EnvState, params: EnvParams) -> jax.Array:
 def zone_features(params: EnvParams, origin: jax.Array) -> jax.Array:
     """(..., Z, 6) zone features relative to `origin` (..., 2); empty slots are zeros."""
     z = params.zones
-    half = 0.5 * params.physics.arena_size
     used = (z.zone_type > 0).astype(jnp.float32)
     effect = z.effect / jnp.where(z.zone_type == C.ZONE_LAVA, LAVA_EFFECT_SCALE, 1.0)
-    rel = (z.centre - origin[..., None, :]) / half
+    rel = (z.centre - origin[..., None, :]) * inverse_half_arena(params)
     shape = rel.shape[:-1]
     feats = jnp.concatenate([
         jnp.broadcast_to((z.zone_type / ZONE_TYPE_SCALE)[:, None], (*shape, 1)),
@@ -79,38 +85,20 @@ def zone_features(params: EnvParams, origin: jax.Array) -> jax.Array:
 def observe(config: EnvConfig, state: EnvState, params: EnvParams) -> jax.Array:
     """(N, obs_size) observation of every unit slot (padded slots get zeros).
 
-    Every other-unit block is first computed for all (viewer, other) pairs in natural order,
-    `pair` (N, N, 16), masked by visibility. Viewer i's row is then `[own i | pair[i, i+1:] |
-    pair[i, :i] | zones i]`: contiguous pieces, written with one concatenate over the flat
-    per-env observation. XLA:CPU copies these pieces in contiguous runs; a single
-    constant-index gather reads the source with a stride of one env's values and transposes
-    its result, and makes the whole 10v10 + 6 zone rollout step about 18% slower
-    (docs/performance.md, "Observation layout"). Same values, bit for bit
-    (tests/test_observe_fast.py checks against a per-viewer reference).
+    Own features, the visibility mask and zone features are computed here; the rows, with the
+    other units in each viewer's cyclic order, are assembled by one primitive
+    (`tabx.observe_kernel`: a native kernel on the CPU, XLA elsewhere, the same bits).
+    tests/test_observe_fast.py checks against a per-viewer reference.
     """
     n = config.num_units
     u = params.units
     active = u.active.astype(bool)
     own = unit_features(state, params)  # (N, 14)
-    half = 0.5 * params.physics.arena_size
-    rel = (state.position[None, :, :] - state.position[:, None, :]) / half  # (N, N, 2)
-    is_ally = (u.team[None, :] == u.team[:, None]).astype(jnp.float32)
-    attackable = state.attackable.astype(jnp.float32)
     # Padded viewers see nothing (their whole observation is zeros).
-    visible = state.visible & active[None, :] & active[:, None]
-
-    def per_other(features: jax.Array) -> jax.Array:  # (N, k) of the other unit -> (N, N, k)
-        return jnp.broadcast_to(features[None], (n, *features.shape))
-
-    pair = jnp.concatenate([per_other(own[:, :2]), rel, per_other(own[:, 4:13]),
-                            is_ally[..., None], attackable[..., None],
-                            per_other(own[:, 13:])], axis=-1)  # (viewer, other, 16)
-    pair = jnp.where(visible[..., None], pair, 0.0)
+    seen = state.visible & active[None, :] & active[:, None]
     zones = (zone_features(params, state.position) * u.active[:, None, None]).reshape(n, -1)
-    pieces = []
-    for i in range(n):  # static: the layout, not the data, depends on i
-        pieces += [own[i], pair[i, i + 1:].reshape(-1), pair[i, :i].reshape(-1), zones[i]]
-    return jnp.concatenate(pieces).reshape(n, -1)
+    return assemble_observation(own, state.position, inverse_half_arena(params), u.team, seen,
+                                state.attackable, zones)
 
 
 def world_state(config: EnvConfig, state: EnvState, params: EnvParams) -> jax.Array:

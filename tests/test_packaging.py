@@ -104,6 +104,10 @@ def test_the_wheel_installs_and_runs_from_a_fresh_environment(tmp_path):
                             "print(tabx.__file__)"], cwd=work, env=env, capture_output=True,
                            text=True, timeout=120)
     assert all(line.startswith(str(env_dir)) for line in where.stdout.split()), where.stdout
+    native = subprocess.run([str(python), "-c", "from tabx.native_lib import native_available; "
+                             "print(native_available())"], cwd=work, env=env,
+                            capture_output=True, text=True, timeout=300)
+    assert native.stdout.strip() == "True", native.stderr  # the kernel source ships in the wheel
     assert tabx_cmd("--version").startswith(f"tabx-ued {tabx.__version__}")
     assert "crossfire" in tabx_cmd("scenarios", "list")
     assert "ued/quickstart" in tabx_cmd("train", "--list-configs").split()

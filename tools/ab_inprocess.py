@@ -33,6 +33,13 @@ from ab_bench import commit_of, parse_tree  # tools/, beside this script
 
 import tabx  # noqa: F401 - first: its XLA flags (one CPU device per core) before JAX starts
 
+try:  # a checkout's program may call the native kernels: their targets must exist here too
+    from tabx.native_lib import native_available
+except ImportError:  # a checkout from before the native kernels
+    pass
+else:
+    native_available()
+
 # Run by the child with its checkout first on PYTHONPATH: build, compile and serialise.
 _CHILD = r"""
 import pickle, sys
