@@ -43,6 +43,7 @@ from tabx.compile_counter import CompileCounter
 from tabx.controllers import Controller
 from tabx.devices import env_devices, env_sharding
 from tabx.env import TabxEnv
+from tabx.native_lib import native_available
 from tabx.params import EnvConfig, EnvParams
 
 SCALE_TEAM_SIZES = (3, 5, 8, 10)
@@ -150,6 +151,7 @@ def run_reconfig(levels: Sequence[EnvParams], config: EnvConfig, num_envs: int =
     keys = [jax.random.key(seed + i) for i in range(len(levels))]
     progress = Progress(len(levels))
     load_avg = load_average()
+    native_available()  # built (or found cached) before the clock starts
     with CompileCounter() as cc:
         t0 = time.perf_counter()
         first_s, after_first = 0.0, 0
