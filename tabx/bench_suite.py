@@ -155,15 +155,25 @@ def run_reconfig(levels: Sequence[EnvParams], config: EnvConfig, num_envs: int =
     with CompileCounter() as cc:
         t0 = time.perf_counter()
         first_s, after_first = 0.0, 0
-        for i, host in enumerate(hosts):
-            t_i = time.perf_counter()
-            jax.block_until_ready(fn(jax.device_put(host, placement), keys[i]))
+        # The next scenario is dispatched before waiting for the one running, so the devices
+        # never wait for the host (placing the next levels, logging); each line then gives the
+        # time from one scenario's result to the next.
+        pending, last = None, t0
+        for i, host in enumerate(hosts + [None]):
+            running = None if host is None else fn(jax.device_put(host, placement), keys[i])
             if i == 0:
+                jax.block_until_ready(running)
                 first_s, after_first = time.perf_counter() - t0, cc.compiles
-            if log is not None:
-                label = describe(levels[i]) if describe is not None else ""
-                log(f"  scenario {i + 1:>3} {label:<32} {time.perf_counter() - t_i:7.3f} s "
-                    f"compilations {cc.compiles}   {progress.step()}")
+            if pending is not None or i == 0:
+                done, result = (i, running) if i == 0 else pending
+                jax.block_until_ready(result)
+                now = time.perf_counter()
+                if log is not None:
+                    label = describe(levels[done]) if describe is not None else ""
+                    log(f"  scenario {done + 1:>3} {label:<32} {now - last:7.3f} s "
+                        f"compilations {cc.compiles}   {progress.step()}")
+                last = now
+            pending = None if i == 0 or running is None else (i, running)
         total_s = time.perf_counter() - t0
     # Every XLA compilation in the process counts (the listener sees eager ops too); the jitted
     # rollout's own executable cache must hold one entry.
