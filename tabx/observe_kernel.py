@@ -15,12 +15,22 @@ XLA version.
 
 from __future__ import annotations
 
+import warnings
+
 import jax
 import jax.numpy as jnp
-from jax.extend.core import Primitive
-from jax.interpreters import ad, mlir
 
 from tabx.native_lib import native_available
+
+try:  # JAX's primitive machinery; on a JAX without it, observations use the XLA version
+    from jax.extend.core import Primitive
+    from jax.interpreters import ad, batching, mlir
+
+    ShapedArray = getattr(jax.core, "ShapedArray", None)
+    if ShapedArray is None:  # pragma: no cover - newer JAX keeps it internal
+        from jax._src.core import ShapedArray
+except ImportError:  # pragma: no cover - depends on the JAX version
+    Primitive = None
 
 TARGET = "tabx_assemble_observation"
 OWN_FEATURES = 14
@@ -58,13 +68,10 @@ def assemble_xla(own, position, inv_half, team, seen, attackable, zones) -> jax.
     return fn(own, position, inv_half, team, seen, attackable, zones)
 
 
-assemble_p = Primitive("tabx_assemble_observation")
-
-
 def _abstract_eval(own, position, inv_half, team, seen, attackable, zones):
     n = own.shape[-2]
     size = OWN_FEATURES + OTHER_FEATURES * (n - 1) + zones.shape[-1]
-    return jax.core.ShapedArray((*own.shape[:-1], size), jnp.float32)
+    return ShapedArray((*own.shape[:-1], size), jnp.float32)
 
 
 def _batch(args, dims):
@@ -90,10 +97,13 @@ def _sharding_attributes(ctx, num_batch: int) -> dict:
     attributes = {"mhlo.frontend_attributes": mlir.ir_attribute({"num_batch_dims":
                                                                  str(num_batch)})}
     if num_batch and jax.config.jax_use_shardy_partitioner:
-        from jax._src.custom_partitioning_sharding_rule import (
-            sdy_sharding_rule_to_mlir,
-            str_to_sdy_sharding_rule,
-        )
+        try:  # JAX-internal helpers (as jax.lax.linalg's kernels use them)
+            from jax._src.custom_partitioning_sharding_rule import (
+                sdy_sharding_rule_to_mlir,
+                str_to_sdy_sharding_rule,
+            )
+        except ImportError:  # pragma: no cover - a batch split over devices is then gathered
+            return attributes
 
         letters = iter("abcdefghijklmnopqrstuvwxyz")
 
@@ -108,24 +118,35 @@ def _sharding_attributes(ctx, num_batch: int) -> dict:
     return attributes
 
 
-_xla_lowering = mlir.lower_fun(assemble_xla, multiple_results=False)
-
-
 def _cpu_lowering(ctx, *args):
     if not native_available():
-        return _xla_lowering(ctx, *args)
+        return mlir.lower_fun(assemble_xla, multiple_results=False)(ctx, *args)
     num_batch = len(ctx.avals_in[0].shape) - 2
     return jax.ffi.ffi_lowering(TARGET, extra_attributes=_sharding_attributes(ctx, num_batch))(
         ctx, *args)
 
 
-assemble_p.def_abstract_eval(_abstract_eval)
-assemble_p.def_impl(jax.jit(assemble_p.bind))
-jax.interpreters.batching.primitive_batchers[assemble_p] = _batch
-ad.primitive_jvps[assemble_p] = _jvp
-mlir.register_lowering(assemble_p, _xla_lowering)
-mlir.register_lowering(assemble_p, _cpu_lowering, platform="cpu")
-jax.ffi.register_ffi_target_as_batch_partitionable(TARGET)
+def _make_primitive():
+    """The primitive with its rules, or None (with a warning) where this JAX lacks the API."""
+    if Primitive is None:
+        return None
+    try:
+        primitive = Primitive("tabx_assemble_observation")
+        primitive.def_abstract_eval(_abstract_eval)
+        primitive.def_impl(jax.jit(primitive.bind))
+        batching.primitive_batchers[primitive] = _batch
+        ad.primitive_jvps[primitive] = _jvp
+        mlir.register_lowering(primitive, mlir.lower_fun(assemble_xla, multiple_results=False))
+        mlir.register_lowering(primitive, _cpu_lowering, platform="cpu")
+        jax.ffi.register_ffi_target_as_batch_partitionable(TARGET)
+    except (AttributeError, TypeError) as err:  # pragma: no cover - depends on the JAX version
+        warnings.warn(f"tabx: observations use the XLA version on this JAX ({err})",
+                      stacklevel=2)
+        return None
+    return primitive
+
+
+assemble_p = _make_primitive()
 
 
 def assemble_observation(own: jax.Array, position: jax.Array, inv_half: jax.Array,
@@ -139,7 +160,8 @@ def assemble_observation(own: jax.Array, position: jax.Array, inv_half: jax.Arra
     health ratio, (p_j - p_i) * inv_half, heading .. alive (own features 4..12), is ally,
     attackable, speed; zeros where i does not see j."""
     batch, n = own.shape[:-2], own.shape[-2]
-    return assemble_p.bind(own.astype(jnp.float32), position.astype(jnp.float32),
+    bind = assemble_xla if assemble_p is None else assemble_p.bind
+    return bind(own.astype(jnp.float32), position.astype(jnp.float32),
                            jnp.broadcast_to(inv_half, (*batch, 2)).astype(jnp.float32),
                            jnp.broadcast_to(team, (*batch, n)).astype(jnp.int32),
                            seen.astype(bool), attackable.astype(bool),
