@@ -155,25 +155,34 @@ def run_reconfig(levels: Sequence[EnvParams], config: EnvConfig, num_envs: int =
     with CompileCounter() as cc:
         t0 = time.perf_counter()
         first_s, after_first = 0.0, 0
-        # The next scenario is dispatched before waiting for the one running, so the devices
-        # never wait for the host (placing the next levels, logging); each line then gives the
-        # time from one scenario's result to the next.
-        pending, last = None, t0
-        for i, host in enumerate(hosts + [None]):
-            running = None if host is None else fn(jax.device_put(host, placement), keys[i])
-            if i == 0:
-                jax.block_until_ready(running)
-                first_s, after_first = time.perf_counter() - t0, cc.compiles
-            if pending is not None or i == 0:
-                done, result = (i, running) if i == 0 else pending
+        last = t0
+
+        def finish(i: int, result) -> None:
+            nonlocal last
+            jax.block_until_ready(result)
+            now = time.perf_counter()
+            if log is not None:
+                label = describe(levels[i]) if describe is not None else ""
+                log(f"  scenario {i + 1:>3} {label:<32} {now - last:7.3f} s "
+                    f"compilations {cc.compiles}   {progress.step()}")
+            last = now
+
+        # Each scenario is dispatched before waiting for the one in flight, so the devices never
+        # wait for the host (placing the next levels, logging); a log line gives the time from
+        # one scenario's result to the next.
+        in_flight = None
+        for i, host in enumerate(hosts):
+            result = fn(jax.device_put(host, placement), keys[i])
+            if i == 0:  # the first alone: its time is the compile-inclusive one
                 jax.block_until_ready(result)
-                now = time.perf_counter()
-                if log is not None:
-                    label = describe(levels[done]) if describe is not None else ""
-                    log(f"  scenario {done + 1:>3} {label:<32} {now - last:7.3f} s "
-                        f"compilations {cc.compiles}   {progress.step()}")
-                last = now
-            pending = None if i == 0 or running is None else (i, running)
+                first_s, after_first = time.perf_counter() - t0, cc.compiles
+                finish(0, result)
+                continue
+            if in_flight is not None:
+                finish(*in_flight)
+            in_flight = (i, result)
+        if in_flight is not None:
+            finish(*in_flight)
         total_s = time.perf_counter() - t0
     # Every XLA compilation in the process counts (the listener sees eager ops too); the jitted
     # rollout's own executable cache must hold one entry.

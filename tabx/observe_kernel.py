@@ -75,8 +75,8 @@ def _abstract_eval(own, position, inv_half, team, seen, attackable, zones):
 
 
 def _batch(args, dims):
-    def mapped(d) -> bool:
-        return d is not None and type(d).__name__ != "NotMapped"
+    def mapped(d) -> bool:  # unmapped: None, or batching.NotMapped on some JAX versions
+        return d is not None and not isinstance(d, getattr(batching, "NotMapped", ()))
 
     size = next(a.shape[d] for a, d in zip(args, dims, strict=True) if mapped(d))
     moved = [jnp.moveaxis(a, d, 0) if mapped(d) else jnp.broadcast_to(a, (size, *a.shape))

@@ -142,7 +142,12 @@ def small_rollout():
 
 def test_reconfig_runs_scenarios_with_zero_recompilations(small_rollout):
     levels = random_levels(3, seed=1, config=SMALL, max_units=4, max_zones=3)
-    result = run_reconfig(levels, SMALL, num_envs=2, steps=3, seed=0, rollout=small_rollout)
+    lines: list[str] = []
+    result = run_reconfig(levels, SMALL, num_envs=2, steps=3, seed=0, rollout=small_rollout,
+                          log=lines.append)
+    # Scenarios overlap (the next is dispatched before the running one is awaited), yet each is
+    # logged once, in order.
+    assert [line.split()[1] for line in lines] == ["1", "2", "3"]
     assert result.compilations == 1 and result.recompilations == 0
     assert small_rollout._cache_size() == 1
     assert result.scenarios == 3 and result.env_steps == 3 * 2 * 3
