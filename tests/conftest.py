@@ -1,11 +1,21 @@
 """Test-session settings shared by every test module."""
 
+import atexit
 import os
+import shutil
+import tempfile
 
-# Tests never read or write the user's persistent compilation cache (ued/compile_cache.py): a
-# warm cache would skip compilations that some tests count. Subprocesses inherit the setting;
-# tests/test_compile_cache.py points it at a temporary folder where it needs one.
-os.environ["TABX_COMPILE_CACHE_DIR"] = "off"
+# One persistent compilation cache (ued/compile_cache.py) for this test session, in a folder of
+# its own that starts empty and is deleted at exit: never the user's cache. Ray actors, CLI
+# subprocesses and in-process runs load a program that another process compiled instead of
+# compiling it again (the Ray tests' actors each compiled the same learner and Explorer
+# programs: about half of their time). A loaded program is the one XLA compiled, so results
+# are the same bit for bit, and tabx.compile_counter counts a load as a compilation, so the
+# no-recompile tests count the same. tests/test_compile_cache.py points the cache at folders
+# of its own.
+_COMPILE_CACHE = tempfile.mkdtemp(prefix="tabx-test-xla-")
+atexit.register(shutil.rmtree, _COMPILE_CACHE, ignore_errors=True)
+os.environ["TABX_COMPILE_CACHE_DIR"] = _COMPILE_CACHE
 
 # Two CPU devices on every machine, whatever its core count (tabx makes one per core, see
 # tabx/_xla_flags.py), so the data-parallel learner path is tested the same way everywhere.
@@ -18,3 +28,4 @@ if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", "")
 # 127.0.0.1 for the machine's outward address and a joining process cannot find the head.
 os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+

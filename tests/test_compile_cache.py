@@ -63,8 +63,13 @@ def test_unwritable_folder_warns_and_stays_off(monkeypatch, tmp_path, capsys):
     blocker = tmp_path / "file"
     blocker.write_text("not a folder")
     monkeypatch.setenv(compile_cache.ENV_VAR, str(blocker / "xla"))
-    assert not compile_cache.jax.config.jax_compilation_cache_dir  # off in tests (conftest)
-    assert compile_cache.enable() is None
+    # As in a process where nothing has set a cache yet (the test session shares one).
+    previous = compile_cache.jax.config.jax_compilation_cache_dir
+    compile_cache.jax.config.update("jax_compilation_cache_dir", None)
+    try:
+        assert compile_cache.enable() is None
+    finally:
+        compile_cache.jax.config.update("jax_compilation_cache_dir", previous)
     assert "compilation cache off" in capsys.readouterr().err
 
 

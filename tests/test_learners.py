@@ -15,9 +15,11 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from test_learners_helpers import (
+    BFLOAT16_STEP,
     ENV_CONFIG,
     duel_level,
     restore_both_and_compare,
+    rounding_bound,
     tiny_config,
     tiny_learner,
     tiny_levels,
@@ -358,9 +360,10 @@ def test_new_levels_never_recompile_and_the_update_stays_on_device():
 
 @pytest.mark.parametrize("algorithm", ["mappo", pytest.param("ippo", marks=pytest.mark.slow)])
 def test_an_update_split_over_two_devices_equals_the_one_device_update(algorithm):
-    """Data parallel: each env draws from its own keys, so both play the same rollout; with
-    one minibatch (the same rows either way) the summed shard gradients give the parameters
-    of the one-device update, up to float summation order."""
+    """Data parallel: each env draws from its own keys, so both play the same rollout
+    (episodes equal exactly); with one minibatch (the same rows either way) the summed shard
+    gradients give the parameters of the one-device update within `rounding_bound`: the
+    shards' float32 sums add in another order (its docstring derives the bound)."""
     results = []
     for devices in (1, 2):
         ppo = PPOConfig(num_envs=4, num_steps=16, hidden_dim=16, num_minibatches=1,
@@ -368,25 +371,41 @@ def test_an_update_split_over_two_devices_equals_the_one_device_update(algorithm
         learner = make_learner(algorithm, ENV_CONFIG, ppo, "ally", "random", cached=False)
         assert len(learner.learner_devices(4)) == devices
         state = learner.init(jax.random.key(0))
+        start = jax.device_get(state.params)
         state, metrics, stats = learner.update(state, tiny_levels(), jax.random.key(1))
         results.append((jax.device_get(state.params), jax.device_get(metrics),
                         jax.device_get(stats)))
     (params_1, metrics_1, stats_1), (params_2, metrics_2, stats_2) = results
+    bound = rounding_bound(ppo)
+    moved = max(float(np.max(np.abs(a - b))) for a, b in zip(
+        jax.tree.leaves(params_1), jax.tree.leaves(start), strict=True))
+    assert moved > 100 * bound  # the update moved the parameters far more than the bound
     for a, b in zip(jax.tree.leaves(params_1), jax.tree.leaves(params_2), strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(a, b, rtol=0, atol=bound)
     assert float(metrics_1["episode/count"]) > 0
-    for name in ("loss/total", "loss/value", "loss/entropy", "grad_norm", "episode/count",
-                 "episode/win_rate", "value/mean"):
-        np.testing.assert_allclose(metrics_1[name], metrics_2[name], rtol=1e-4, atol=1e-6,
-                                   err_msg=name)
-    for name in ("dones", "rewards", "wins"):  # the same rollout
+    for name in ("dones", "rewards", "wins"):  # the same rollout, exactly
         np.testing.assert_array_equal(getattr(stats_1, name), getattr(stats_2, name))
-    # (values to rounding: a matmul over half the rows may sum in another order)
-    np.testing.assert_allclose(stats_1.values, stats_2.values, rtol=1e-5, atol=1e-6)
+    for name in ("episode/count", "episode/win_rate"):  # counted from those: exact
+        assert metrics_1[name] == metrics_2[name], name
+    # Losses, norms and values are means over 128 rows of products that may each round one
+    # bfloat16 step (2**-8) apart: relative to their size, and to the mean of absolute terms
+    # where they nearly cancel.
+    for name in ("loss/total", "loss/value", "loss/entropy", "grad_norm", "value/mean"):
+        np.testing.assert_allclose(metrics_1[name], metrics_2[name], rtol=BFLOAT16_STEP,
+                                   atol=BFLOAT16_STEP * 1e-2, err_msg=name)
+    assert_values_close(stats_1.values, stats_2.values)
+
+
+def assert_values_close(a, b) -> None:
+    """Values of the same states from two programs that sum in another order: a last float32
+    bit may round a bfloat16 input one step (2**-8) apart, moving a value by up to that share
+    of the largest values' size."""
+    np.testing.assert_allclose(a, b, rtol=0, atol=BFLOAT16_STEP * float(np.max(np.abs(a))))
 
 
 def test_scoring_split_over_two_devices_equals_one_device_scoring():
-    """`score` plays each env from its own keys: same episodes, values to rounding."""
+    """`score` plays each env from its own keys: same episodes, values to rounding
+    (`assert_values_close`)."""
     results = []
     for devices in (1, 2):
         ppo = PPOConfig(num_envs=4, num_steps=16, hidden_dim=16, num_minibatches=2,
@@ -404,9 +423,8 @@ def test_scoring_split_over_two_devices_equals_one_device_scoring():
     assert metrics_1["episode/count"] == metrics_2["episode/count"] > 0
     for name in ("dones", "rewards", "wins"):
         np.testing.assert_array_equal(getattr(stats_1, name), getattr(stats_2, name))
-    for name in ("values", "advantages"):
-        np.testing.assert_allclose(getattr(stats_1, name), getattr(stats_2, name), rtol=1e-5,
-                                   atol=1e-6)
+    for name in ("values", "advantages"):  # the episodes' rewards are equal; values round
+        assert_values_close(getattr(stats_1, name), getattr(stats_2, name))
 
 
 def test_devices_are_chosen_to_split_the_envs_evenly():

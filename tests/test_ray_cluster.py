@@ -143,10 +143,17 @@ def stop_session(process: subprocess.Popen, grace_s: float = 10.0) -> None:
 
 @pytest.fixture
 def cli_cluster(tmp_path):
-    """A one-node Ray cluster started with `ray start --head`; yields its address."""
+    """A one-node Ray cluster started with `ray start --head`, checking a token of its own (a
+    fresh machine has no ~/.ray/auth_token, and the user's must not be touched); yields its
+    address and the environment a process joining it needs."""
+    import secrets
+
     port = free_port()
     log = open(tmp_path / "ray-head.log", "w")  # noqa: SIM115 (closed below)
-    env = {**os.environ, "RAY_AUTH_MODE": "token"}
+    token = tmp_path / "auth_token"
+    token.write_text(secrets.token_hex(32))  # the form `ray get-auth-token --generate` writes
+    env = {**os.environ, "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN_PATH": str(token)}
+    env.pop("RAY_AUTH_TOKEN", None)
     head = subprocess.Popen(
         [ray_command(), "start", "--head", f"--port={port}", "--num-cpus=2",
          "--include-dashboard=false", "--disable-usage-stats", "--block"],
@@ -157,7 +164,7 @@ def cli_cluster(tmp_path):
             assert head.poll() is None, (tmp_path / "ray-head.log").read_text()[-3000:]
             assert time.monotonic() < deadline, "ray start --head did not start in 90 s"
             time.sleep(0.5)
-        yield f"127.0.0.1:{port}"
+        yield f"127.0.0.1:{port}", env
     finally:
         stop_session(head)
         log.close()
@@ -178,10 +185,10 @@ def test_tabx_train_joins_a_cluster_started_with_the_ray_command(tmp_path, cli_c
     config_file = tmp_path / "tiny.yaml"
     config_file.write_text(ued_config("robust_plr", **{"ray.explorers": 1}).to_yaml())
     run_dir = tmp_path / "joined"
-    env = {**os.environ, "RAY_AUTH_MODE": "token"}  # the CLI cluster checks the token
+    address, env = cli_cluster  # the CLI cluster checks its token
     done = subprocess.run(
         [sys.executable, "-m", "tabx_ued", "train", str(config_file), "--ray", "--address",
-         cli_cluster, "--run-dir", str(run_dir), "--max-updates", str(STEPS)],
+         address, "--run-dir", str(run_dir), "--max-updates", str(STEPS)],
         capture_output=True, text=True, env=env, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     assert done.stdout.strip().endswith(str(run_dir))

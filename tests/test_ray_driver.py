@@ -61,9 +61,10 @@ def trees_equal(a, b) -> bool:
                                                     strict=True))
 
 
-# ACCEL (replay, mutation, fresh levels) in the default run; the other two with `-m slow`.
-@pytest.mark.parametrize("method", [pytest.param("robust_plr", marks=pytest.mark.slow), "accel",
-                                    pytest.param("sfl", marks=pytest.mark.slow)])
+# With `-m slow`: the default run has ACCEL's deterministic equality (replay, mutation, fresh
+# levels) on 2 Explorers in the chaos test below, which asserts all of this with kills besides.
+@pytest.mark.slow
+@pytest.mark.parametrize("method", ["robust_plr", "accel", "sfl"])
 def test_deterministic_mode_equals_the_local_driver(tmp_path, method):
     local = train(ued_config(method), run_dir=tmp_path / "local", stream=io.StringIO(),
                   max_updates=STEPS)
@@ -286,6 +287,8 @@ def test_chaos_kills_leave_the_deterministic_run_equal_to_the_local_one(tmp_path
                                          "ray.chaos_roles": "explorer,service"}),
                    run_dir=tmp_path / "chaos", stream=out, max_updates=STEPS + 1)
     record = json.loads((remote / RAY_RECORD).read_text())
+    assert record["mode"] == "deterministic" and set(record["placement"]) == {
+        "service", "learner", "explorer-0", "explorer-1"}
     assert record["chaos_kills"] == 3  # after steps 2, 4 and 6, not the last
     for victim, step in (("service", 2), ("explorer-0", 4), ("explorer-1", 6)):
         assert (f"ray: chaos: killed {victim} after step {step} (ray.chaos_kill_every=2)"
@@ -294,7 +297,14 @@ def test_chaos_kills_leave_the_deterministic_run_equal_to_the_local_one(tmp_path
     state_a, key_a, _ = final_state(local, ued_config(method))
     state_b, key_b, _ = final_state(remote, ued_config(method))
     assert trees_equal(state_a.params, state_b.params) and np.array_equal(key_a, key_b)
-    for name in sorted(p.name for p in (local / LEVELS_DIR).iterdir()):
+    snapshots = sorted(p.name for p in (local / LEVELS_DIR).iterdir())
+    assert any(name.endswith(".msgpack") for name in snapshots)  # the buffer's
+    # The same snapshots, and the service's commit log since the last one (empty).
+    last = STEPS + 1
+    assert sorted(p.name for p in (remote / LEVELS_DIR).iterdir()) == sorted(
+        [*snapshots, LOG_NAME.format(last)])
+    assert read(remote / LEVELS_DIR / LOG_NAME.format(last)).records == []
+    for name in snapshots:  # buffer and curriculum state: byte for byte
         assert (local / LEVELS_DIR / name).read_bytes() == (remote / LEVELS_DIR / name
                                                             ).read_bytes(), name
 
@@ -434,6 +444,7 @@ def test_a_killed_service_restarts_with_every_commit_and_the_run_equals_the_loca
                                                             ).read_bytes(), name
 
 
+@pytest.mark.slow  # the asynchronous chaos test kills the service every 0.2 s and asserts this
 def test_a_killed_service_loses_no_committed_batch_in_the_asynchronous_mode(tmp_path):
     # Explorer batches in flight when the service dies lose their levels with it: they are
     # asked for again and committed once; every commit acknowledged before the death stays.

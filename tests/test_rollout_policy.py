@@ -84,6 +84,7 @@ def test_greedy_policies_play_the_episode_eval_plays(runs):
     for name in ("position", "heading", "health", "alive", "done", "won"):
         np.testing.assert_array_equal(getattr(states, name), getattr(evaluated.states, name),
                                       err_msg=name)
+    # The same rewards summed by two programs, perhaps in another order: a few float32 ulps.
     np.testing.assert_allclose(total, evaluated.returns[0], rtol=1e-6)
     assert not np.allclose(states.heading[-1], np.asarray(level.units.heading), atol=0.1)
 
