@@ -5,6 +5,8 @@ import os
 import shutil
 import tempfile
 
+import pytest
+
 # One persistent compilation cache (ued/compile_cache.py) for this test session, in a folder of
 # its own that starts empty and is deleted at exit: never the user's cache. Ray actors, CLI
 # subprocesses and in-process runs load a program that another process compiled instead of
@@ -30,6 +32,8 @@ if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", "")
 # often than they run. Neither option changes what a program computes (no fast-math); results
 # are compared only between programs of the same session. Programs whose jit names these options
 # itself keep its choice. TABX_TEST_DEFAULT_COMPILER=1 tests with XLA's settings instead.
+OPTIMIZING_COMPILER_OPTIONS = {"xla_backend_optimization_level": 3,
+                               "xla_cpu_use_fusion_emitters": True}
 _QUICK_COMPILE_FLAGS = ("--xla_backend_optimization_level=0",
                         "--xla_cpu_use_fusion_emitters=false")
 if os.environ.get("TABX_TEST_DEFAULT_COMPILER") != "1":
@@ -43,3 +47,14 @@ if os.environ.get("TABX_TEST_DEFAULT_COMPILER") != "1":
 os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 
+
+
+@pytest.fixture
+def optimizing_compiler(monkeypatch):
+    """For a test that runs its learner for many updates: its learner programs are compiled
+    with XLA's optimisations after all (the session's quick-compile flags above halve the
+    speed of a compiled update, which such a test pays on every update)."""
+    from tabx import jit_options
+
+    for option, value in OPTIMIZING_COMPILER_OPTIONS.items():
+        monkeypatch.setitem(jit_options.LEARNER_CPU_OPTIONS, option, value)

@@ -20,7 +20,7 @@ from ued.learners import make_learner
 
 
 @pytest.mark.parametrize("algorithm", ["mappo", pytest.param("ippo", marks=pytest.mark.slow)])
-def test_learns_two_archers_against_a_farmer(algorithm):
+def test_learns_two_archers_against_a_farmer(algorithm, optimizing_compiler):
     config, level = learning_duel()
     num_envs, num_steps, updates = 64, 64, 40
     levels = jax.tree.map(jnp.asarray, repeat_level(level, num_envs))
