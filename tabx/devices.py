@@ -2,7 +2,7 @@
 
 A vmapped rollout has no communication between envs, so a batch placed with `env_sharding` runs
 as one program per device, each on its share of the envs, side by side. On a CPU, `tabx` makes
-one device per core (tabx/_xla_flags.py): XLA:CPU runs most of a simulator step's small kernels
+one device per core (tabx/xla_flags.py): XLA:CPU runs most of a simulator step's small kernels
 on one thread, so two devices with half the envs each keep both cores busy (docs/benchmarks.md,
 "Both cores"). The split changes where each env is computed, not what: the states are those of
 one device bit for bit; an observation value may differ in its last bit (XLA compiles the split
