@@ -499,7 +499,7 @@ class PPOLearner:
         of them, or with 0 the most that split the envs into equal shares of each of
         `minibatches` (default: the config's) minibatches. Not `strict` (scoring batches of
         any size): at most `ppo.num_devices`, as many as divide the envs evenly. On CPU,
-        `tabx` makes one device per core (tabx/xla_flags.py)."""
+        the `tabx` command makes one device per core (tabx/xla_flags.py)."""
         if minibatches is None:
             minibatches = self.ppo.num_minibatches
         wanted = self.ppo.num_devices
