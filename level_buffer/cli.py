@@ -237,8 +237,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def cmd_render(args: argparse.Namespace) -> int:
     from tabx.params import level_config
-    from tabx.render import render_level, save_png
-    from tabx.scenarios.cli import check_render_options
+    from tabx.render import check_render_options, render_level, save_png
 
     check_render_options(args.out, args.scale)
     buf = _load(args.file)

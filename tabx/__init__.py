@@ -2,10 +2,10 @@
 
 Main entry points: `tabx.env.TabxEnv` (array API), `tabx.params` (EnvConfig / EnvParams levels),
 `tabx.scenarios` (scenario files), `tabx.marl` (JaxMARL-compatible adapter).
+
+Importing `tabx` changes no environment variable and starts no JAX backend. The XLA:CPU
+settings the `tabx` command uses (one CPU device per usable core, YNN fusion off) are one call
+away, before JAX starts its backend: `tabx.xla_flags.apply()` (docs/performance.md).
 """
-
-from tabx import _xla_flags
-
-_xla_flags.apply()
 
 __version__ = "0.1.0"

@@ -1,8 +1,9 @@
 """Where a batch of envs lives: split evenly over the local devices of JAX's default backend.
 
 A vmapped rollout has no communication between envs, so a batch placed with `env_sharding` runs
-as one program per device, each on its share of the envs, side by side. On a CPU, `tabx` makes
-one device per core (tabx/_xla_flags.py): XLA:CPU runs most of a simulator step's small kernels
+as one program per device, each on its share of the envs, side by side. On a CPU, the `tabx`
+command makes one device per core (`tabx.xla_flags.apply()`, which a program of your own may
+call before JAX starts): XLA:CPU runs most of a simulator step's small kernels
 on one thread, so two devices with half the envs each keep both cores busy (docs/benchmarks.md,
 "Both cores"). The split changes where each env is computed, not what: the states are those of
 one device bit for bit; an observation value may differ in its last bit (XLA compiles the split
@@ -23,8 +24,9 @@ def available_devices(wanted: int = 0) -> list[jax.Device]:
     `wanted` (saying how to ask for more CPU devices)."""
     available = jax.local_devices()
     if wanted > len(available):
-        hint = ("; tabx makes one CPU device per core, XLA_FLAGS="
-                "--xla_force_host_platform_device_count=N asks for N"
+        hint = ("; the tabx command makes one CPU device per core (tabx.xla_flags.apply() "
+                "before JAX starts), XLA_FLAGS=--xla_force_host_platform_device_count=N asks "
+                "for N"
                 if available[0].platform == "cpu" else "")
         raise ValueError(f"{wanted} devices asked for, {len(available)} available "
                          f"({available[0].platform}){hint}")

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from tabx import constants as C
 from tabx.combat import attackable_pairs, nearest_targets, resolve_attacks
@@ -35,7 +36,9 @@ from tabx.starts import randomise_start
 from tabx.state import EnvState
 from tabx.zones import apply_bush_hiding, bush_hidden, lava_damage, swamp_speed
 
-_ACTION_TABLE = jnp.asarray(C.ACTION_TABLE, jnp.float32)
+# A host array, made a device constant where a step is traced: an import starts no JAX backend
+# (XLA_FLAGS must still be settable after `import tabx`).
+_ACTION_TABLE = np.asarray(C.ACTION_TABLE, np.float32)
 
 Info = dict[str, jax.Array]
 
@@ -171,7 +174,7 @@ class TabxEnv:
         attacking = (action == C.ATTACK) & cooldown_ready(state.cooldown, u.cooldown) & able
         attack_loss, hit, interacted = resolve_attacks(attacking, state.has_target,
                                                        state.target, u.damage)
-        table = _ACTION_TABLE[action]
+        table = jnp.asarray(_ACTION_TABLE)[action]
         velocity = table[:, :2] * jnp.where(able, state.speed, 0.0)[:, None]
         turn = table[:, 2] * able  # -1 right, +1 left, 0 none
         step_angle = ph.turn_rate * dt

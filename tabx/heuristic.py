@@ -54,8 +54,6 @@ SEARCH_REVERSE_PROB = 0.05
 # Max-health tolerance of the assassin's "lowest max health" (the reference's 0.01).
 ASSASSIN_HP_TOLERANCE = 0.01
 
-_MOVE_ACTIONS = jnp.asarray([[C.LEFT, C.RIGHT], [C.DOWN, C.UP]], jnp.int32)
-
 
 def _toward(v: jax.Array) -> jax.Array:
     """(N,) world-frame move along the dominant axis of v (N, 2), toward its sign."""

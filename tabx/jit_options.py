@@ -17,7 +17,7 @@ Learner programs (updates, scoring, evaluation) keep the newer emitters: their n
 ran 15-25 % slower with the older ones (`tabx bench train`), which outweighs their faster
 compile. When their networks multiply in bfloat16 (`learner.matmul_dtype`, the default) they get
 XLA:CPU's YNNPACK kernels for their matrix products (`xla_cpu_experimental_ynn_fusion_type`,
-which `tabx._xla_flags` turns off process-wide because its reductions are slow for the
+which `tabx.xla_flags` turns off process-wide because its reductions are slow for the
 simulator): these use the CPU's AMX units for bfloat16 inputs, about 3x faster than XLA's own
 dot kernels on the learners' small products. In float32 they were 2-4 % slower on whole updates,
 so float32 learners keep XLA's defaults (docs/learners.md, "Matmul precision").
@@ -36,7 +36,7 @@ from typing import Any
 
 import jax
 
-from tabx import _xla_flags
+from tabx import xla_flags
 
 SIMULATOR_CPU_OPTIONS: dict[str, Any] = {"xla_cpu_use_fusion_emitters": False,
                                          "xla_cpu_enable_fast_min_max": True}
@@ -47,7 +47,7 @@ LEARNER_CPU_OPTIONS: dict[str, Any] = {
 def _cpu_options(options: dict[str, Any]) -> dict[str, Any] | None:
     if os.environ.get("TABX_DEFAULT_COMPILER") == "1":
         return None
-    if not _xla_flags.jaxlib_is_measured():
+    if not xla_flags.jaxlib_is_measured():
         return None
     if jax.default_backend() != "cpu":
         return None

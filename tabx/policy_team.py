@@ -1,18 +1,14 @@
-"""A team played by a trained policy in `tabx rollout`, as a layer above the simulator hands it.
+"""A team played by a trained policy in an episode of `tabx.rollout`.
 
-The simulator trains and loads no policy (its layer imports no learner), yet its rollout can
-play one: the full command line (`tabx_ued.cli`) gives `tabx.cli.add_simulator_commands` a
-`PolicyLoader`, which turns a run folder named by `--ally`/`--enemy` into a `PolicyTeam`: a
-traceable action function with its parameters and recurrent state, the unit slots it drives,
-and the EnvConfig it plays (a policy's observation size is fixed). The rollout compiles the
-policy's step into its own episode scan, beside the scripted controllers of the other team:
+The simulator trains and loads no policy (its layer imports no learner), yet its episodes can
+play one: a layer above hands in a `PolicyTeam` (`ued.evaluate.policy_team`): a traceable action
+function with its parameters and recurrent state, the unit slots it drives, and the EnvConfig it
+plays (a policy's observation size is fixed). The rollout compiles the policy's step into its
+own episode scan, beside the scripted controllers of the other team:
 
-    team = loader("runs/mappo_crossfire-...", C.ENEMY, greedy=False)
+    team = ued.evaluate.load_policy_team("runs/mappo_crossfire-...", C.ENEMY, greedy=False)
     hidden = team.initial_hidden()
     actions, hidden = team.act(team.params, obs, mask, hidden, key)    # inside jit
-
-Without a loader (the simulator's own `python -m tabx.cli`), a run folder is an error that
-says so.
 """
 
 from __future__ import annotations
@@ -54,10 +50,4 @@ class PolicyTeam:
         return self.label
 
 
-# loader(run folder, team it plays (C.ALLY or C.ENEMY), greedy) -> PolicyTeam; raises
-# `tabx.errors.UserError` naming the folder when it cannot (not a run, damaged checkpoint, a
-# team it cannot play).
-PolicyLoader = Callable[[str, int, bool], PolicyTeam]
-
-
-__all__ = ["PolicyAct", "PolicyLoader", "PolicyTeam"]
+__all__ = ["PolicyAct", "PolicyTeam"]

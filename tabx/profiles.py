@@ -19,8 +19,6 @@ docs/differences.md lists every difference, and which profile restores which.
 
 from __future__ import annotations
 
-import argparse
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -89,15 +87,6 @@ def profile_name(level: EnvParams) -> str:
     return f"custom (bits {bits:#x}, reward mode {mode_name})"
 
 
-def add_profile_argument(parser: argparse.ArgumentParser, default: str = DEFAULT_PROFILE
-                         ) -> None:
-    """`--profile NAME` on a command; `default` is what the help says happens without it."""
-    parser.add_argument("--profile", choices=PROFILE_NAMES, default=None,
-                        help=f"behaviour profile: tabx-ued (our fixes and choices) or reference "
-                             f"(the reference implementation's choices, to reproduce the "
-                             f"paper's numbers; docs/differences.md); default {default}")
-
-
 def reference_choice(params: EnvParams, choice: int) -> jax.Array:
     """bool scalar: the level plays the reference's behaviour for `choice` (one bit)."""
     return (params.profile & choice) != 0
@@ -106,5 +95,5 @@ def reference_choice(params: EnvParams, choice: int) -> jax.Array:
 __all__ = ["ALL_CHOICES", "ASSASSIN_CURRENT_SPEED", "BUSH_BOX", "CHOICES", "CORPSE_DRIFT",
            "CORPSE_VISION", "DEFAULT_PROFILE", "EPSILON_MOVES", "KITE_MOVE_POINT",
            "MEMORY_REACH", "PROFILES", "PROFILE_NAMES", "SEARCH_RIGHT", "TURN_IN_PLACE",
-           "TURN_PREDICTION", "add_profile_argument", "check_profile", "profile_name",
+           "TURN_PREDICTION", "check_profile", "profile_name",
            "reference_choice", "with_profile"]

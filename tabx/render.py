@@ -40,6 +40,7 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from tabx import constants as C
+from tabx.errors import UserError
 from tabx.files import atomic_write_bytes
 from tabx.params import EnvConfig, EnvParams
 from tabx.state import EnvState
@@ -549,3 +550,19 @@ def check_png_path(path: str | os.PathLike) -> Path:
     if not path.parent.is_dir():
         raise ValueError(f"{path}: the folder {path.parent} does not exist")
     return path
+
+
+MAX_SCALE = 40.0  # pixels per world unit: about 5000 x 3600 pixels for the default arena
+
+
+def check_render_options(out: str, scale: float) -> None:
+    """UserError unless `out` is a writable .png path and `scale` is sensible: the `--out` and
+    `--scale` of the commands that draw a level (`tabx scenarios render`, `tabx buffer render`,
+    `tabx levels sample`)."""
+    if not (0 < scale <= MAX_SCALE):  # also rejects nan
+        raise UserError(f"--scale must be in (0, {MAX_SCALE:g}] pixels per world unit, "
+                        f"got {scale:g}")
+    try:
+        check_png_path(out)
+    except ValueError as err:
+        raise UserError(f"--out {err}") from None

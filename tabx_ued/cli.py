@@ -1,49 +1,128 @@
-"""`tabx`: one entry point whose sub-commands come from the layer that owns each.
+"""The `tabx` command's entry point and machinery: parse a command line, run one command, turn
+its errors into one line.
 
-    tabx scenarios | rollout | bench | editor | eval heuristics     the simulator (tabx.cli)
-    tabx rollout --ally RUN_DIR                  a trained policy (ued.evaluate.load_policy_team)
-    tabx buffer ...                                               level_buffer.cli
-    tabx levels sample, tabx plot, tabx bench train               ued
-    tabx train, tabx eval                                         tabx_ued.run_commands
-    tabx eval payoff                                              ued.payoff
-    tabx analyse value-error                                      ued.value_error
-    tabx runs status | buffer                                     tabx_ued.runs_commands
+`main` is the console script (`tabx`, also `python -m tabx` and `python -m tabx_ued`). It first
+applies the XLA:CPU settings of the `tabx` command (`tabx.xla_flags.apply`: one CPU device per
+usable core, YNN fusion off), before anything of JAX is imported, then loads the command table
+(`tabx_ued.commands`).
+
+A command is added by a *registrar*: a function `add_parser(subparsers)` that adds its
+sub-command and sets `func` on its parser; `func(args) -> int` is the exit code. Errors the
+user can fix (a bad file, a bad value) are raised as `tabx.errors.UserError` and printed as one
+line, without a traceback.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+from collections.abc import Callable, Iterable, Mapping
 
-from level_buffer import cli as buffer_cli
-from tabx import cli as simulator_cli
-from tabx_ued import run_commands, runs_commands
-from ued import levels_cli, payoff, plot, value_error
-from ued.evaluate import load_policy_team
-from ued.learners.bench import add_train_bench
-from workers.bench import add_ued_bench
+from tabx import xla_flags
+from tabx.errors import UserError
 
-
-def add_commands(subparsers: argparse._SubParsersAction) -> None:
-    simulator_cli.add_simulator_commands(subparsers, bench_extra=[add_train_bench, add_ued_bench],
-                                         policy_loader=load_policy_team)
-    buffer_cli.add_parser(subparsers)
-    run_commands.add_parser(subparsers)
-    runs_commands.add_parser(subparsers)
-    levels_cli.add_parser(subparsers)
-    plot.add_parser(subparsers)
-    value_error.add_parser(subparsers)
+Registrar = Callable[[argparse._SubParsersAction], object]
+# Commands whose first argument is a fixed word next to a free positional of another command
+# (`tabx eval heuristics NAME` beside `tabx eval RUN_DIR`): (command, word) -> a registrar that
+# adds a parser named `word`.
+Routes = Mapping[tuple[str, str], Registrar]
 
 
-# `tabx eval WORD ...` routes beside `tabx eval RUN_DIR` (tabx.cli.ROUTES).
-ROUTES = {**simulator_cli.ROUTES, ("eval", "payoff"): payoff.add_route_parser}
+def version_text() -> str:
+    """`tabx --version`: this package's version and the JAX it runs on."""
+    import jax
+
+    from tabx import __version__
+
+    return f"tabx-ued {__version__} (jax {jax.__version__}, python {sys.version.split()[0]})"
+
+
+def build_parser(registrars: Iterable[Registrar]) -> argparse.ArgumentParser:
+    """The `tabx` parser with the sub-commands the registrars add."""
+    parser = argparse.ArgumentParser(
+        prog="tabx", description="TABX battle simulator, MARL learners and UED tools.")
+    parser.add_argument("--version", action="version", version=version_text())
+    parser.add_argument("--debug", action="store_true",
+                        help="show the Python traceback of an error (or set TABX_DEBUG=1)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for add in registrars:
+        add(sub)
+    return parser
+
+
+def build_route_parser(command: str, word: str, routes: Routes) -> argparse.ArgumentParser:
+    """The parser of one route, `tabx COMMAND WORD ...`."""
+    parser = argparse.ArgumentParser(prog=f"tabx {command}")
+    sub = parser.add_subparsers(dest="route", metavar=word)
+    sub.required = True
+    routes[(command, word)](sub)
+    return parser
+
+
+# Names of a command's positional KEY=VALUE lists, which may also follow its options.
+OVERRIDE_LISTS = ("items", "overrides")
+
+
+def run(argv: list[str] | None, registrars: Iterable[Registrar], routes: Routes | None = None
+        ) -> int:
+    """Parse `argv` (default: sys.argv[1:]) against the registrars' commands and run one.
+
+    Errors end in one line on stderr, never a traceback: a `UserError` (bad input, a damaged
+    file) as `tabx COMMAND: error: ...` with exit code 2, anything else with its type and exit
+    code 1. `tabx --debug COMMAND ...` (or TABX_DEBUG=1) lets the traceback through."""
+    routes = {} if routes is None else routes
+    argv = list(sys.argv[1:] if argv is None else argv)
+    debug = os.environ.get("TABX_DEBUG", "") not in ("", "0")
+    if argv[:1] == ["--debug"]:
+        debug, argv = True, argv[1:]
+    if tuple(argv[:2]) in routes:
+        args = build_route_parser(argv[0], argv[1], routes).parse_args(argv[1:])
+        args.command = argv[0]
+    else:
+        parser = build_parser(registrars)
+        args, extra = parser.parse_known_args(argv)
+        if extra:
+            # KEY=VALUE overrides after options (`tabx train CONFIG --ray ray.explorers=2`):
+            # argparse stops collecting positionals at the first option; gather them here.
+            overrides = next((getattr(args, name) for name in OVERRIDE_LISTS
+                              if isinstance(getattr(args, name, None), list)), None)
+            if overrides is None or not all("=" in e and not e.startswith("-") for e in extra):
+                parser.error(f"unrecognized arguments: {' '.join(extra)}")
+            overrides.extend(extra)
+    try:
+        return int(args.func(args) or 0)
+    except UserError as err:
+        if debug:
+            raise
+        print(f"tabx {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:  # output piped into `head` and the like: not an error
+        sys.stderr.close()
+        return 0
+    except Exception as err:  # noqa: BLE001 (the one place that turns any error into a line)
+        if debug:
+            raise
+        text = str(err).strip().splitlines()[0] if str(err).strip() else ""
+        print(f"tabx {args.command}: error: {type(err).__name__}{': ' if text else ''}{text} "
+              f"(unexpected: run `tabx --debug {args.command} ...` or set TABX_DEBUG=1 for "
+              f"the traceback)", file=sys.stderr)
+        return 1
 
 
 def main(argv: list[str] | None = None) -> int:
-    return simulator_cli.run(argv, [add_commands], ROUTES)
+    """The `tabx` command: its XLA settings, then every command (`tabx_ued.commands`)."""
+    xla_flags.apply()  # before JAX starts its backend: the command table imports JAX
+    from tabx_ued.commands import ROUTES, add_commands
+
+    return run(argv, [add_commands], ROUTES)
 
 
-__all__ = ["add_commands", "main"]
+__all__ = ["Registrar", "Routes", "UserError", "build_parser", "main", "run", "version_text"]
 
 if __name__ == "__main__":
     sys.exit(main())

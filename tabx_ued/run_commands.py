@@ -24,7 +24,7 @@ import argparse
 from pathlib import Path
 
 from tabx.errors import UserError
-from tabx.profiles import add_profile_argument
+from tabx_ued.arguments import add_profile_argument
 
 DEFAULT_EPISODES = 100  # of `tabx eval` without --suite
 

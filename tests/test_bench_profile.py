@@ -13,10 +13,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import tabx.env
-from tabx.bench_profile import TRACEME_FLAG, analyse, child_environment, format_profile
-from tabx.cli import main
-from tabx.hlo_text import Frame, element_count, parse_hlo
-from tabx.step_stages import (
+from tabx_bench.hlo_text import Frame, element_count, parse_hlo
+from tabx_bench.stage_profile import TRACEME_FLAG, analyse, child_environment, format_profile
+from tabx_bench.step_stages import (
     ACTIONS,
     ATTACKS,
     OBSERVATIONS,
@@ -30,7 +29,8 @@ from tabx.step_stages import (
     attribute,
     stage_of,
 )
-from tabx.xplane import exclusive_times
+from tabx_bench.xplane import exclusive_times
+from tabx_ued.cli import main
 
 
 def _inner(x):
@@ -93,7 +93,8 @@ def test_stage_table_owners_leaves_and_file_defaults():
                      Frame(env_file, advance, _env_line("attacking ="))]) == ATTACKS
     # A helper the table does not know counts for its file; unknown files pass it on.
     assert stage_of([_frame("observe.py", "a_new_helper"),
-                     _frame("bench.py", "make_rollout.<locals>.rollout")]) == OBSERVATIONS
+                     Frame("/src/tabx_bench/simulator.py",
+                           "make_rollout.<locals>.rollout", 1)]) == OBSERVATIONS
     assert stage_of([_frame("physics.py", "a_new_helper")]) == PHYSICS
     assert stage_of([Frame("/elsewhere/physics.py", "integrate", 1)]) == OTHER
     assert stage_of([]) == OTHER
@@ -124,7 +125,7 @@ def _module_text(physics_elements: int, observe_elements: int) -> str:
     return f"""HloModule test
 
 FileNames
-1 "/src/tabx/bench.py"
+1 "/src/tabx_bench/simulator.py"
 2 "/src/tabx/physics.py"
 3 "/src/tabx/observe.py"
 

@@ -14,8 +14,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from tabx import constants as C
-from tabx.bench import BenchResult, make_rollout
-from tabx.bench_suite import (
+from tabx.compile_counter import CompileCounter
+from tabx.env import TabxEnv
+from tabx.params import EnvConfig, levels_equal
+from tabx.random_levels import composition, random_levels
+from tabx.scenarios.format import level_to_scenario
+from tabx_bench.simulator import BenchResult, make_rollout
+from tabx_bench.suite import (
     ReconfigResult,
     compare_rows,
     format_compare,
@@ -24,11 +29,6 @@ from tabx.bench_suite import (
     run_compare,
     run_reconfig,
 )
-from tabx.compile_counter import CompileCounter
-from tabx.env import TabxEnv
-from tabx.params import EnvConfig, levels_equal
-from tabx.random_levels import composition, random_levels
-from tabx.scenarios.format import level_to_scenario
 from tabx_ued.cli import main
 
 SMALL = EnvConfig(max_allies=4, max_enemies=4, max_zones=3, max_steps=32)
@@ -73,7 +73,7 @@ def test_compare_without_jaxmarl_says_how_to_install(monkeypatch, capsys):
             raise ModuleNotFoundError(f"No module named {name!r}", name=name)
         return real_import(name, *args, **kwargs)
 
-    for mod in [m for m in sys.modules if m.startswith(("jaxmarl", "tabx.peers.smax"))]:
+    for mod in [m for m in sys.modules if m.startswith(("jaxmarl", "tabx_bench.peers.smax"))]:
         monkeypatch.delitem(sys.modules, mod)
     monkeypatch.setattr(builtins, "__import__", no_jaxmarl)
     assert main(["bench", "compare", "--team-sizes", "3", "--num-envs", "1"]) == 2
@@ -256,7 +256,7 @@ def test_compare_rows_need_matching_peer_results():
 
 
 def test_compare_cli_with_a_fake_peer(monkeypatch, tmp_path, capsys):
-    import tabx.bench_suite as suite
+    import tabx_bench.suite as suite
 
     monkeypatch.setattr(suite, "load_peer",
                         lambda name, devices=0: FakeSim("SMAX", {3: 1e5, 5: 5e4}, 100))

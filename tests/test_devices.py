@@ -10,13 +10,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tabx.bench import make_rollout, run_one
-from tabx.bench_suite import host_batch
 from tabx.controllers import Controller, with_tiers
 from tabx.devices import env_devices, env_sharding
 from tabx.env import TabxEnv
 from tabx.params import EnvConfig
 from tabx.random_levels import random_levels
+from tabx_bench.simulator import make_rollout, run_one
+from tabx_bench.suite import host_batch
 from tabx_ued.cli import main
 
 SMALL = EnvConfig(max_allies=3, max_enemies=3, max_zones=2)

@@ -16,7 +16,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tabx import cli
 from tabx import constants as C
 from tabx import params as P
 from tabx.editor.server import make_server
@@ -28,6 +27,7 @@ from tabx.scenarios import (
     load_file,
     load_named,
 )
+from tabx_ued import cli
 
 DUEL = {
     "format": "tabx-scenario/1",

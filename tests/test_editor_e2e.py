@@ -12,12 +12,20 @@ from __future__ import annotations
 import io
 import json
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tabx.editor.screenshot import VIEWPORT, chromium_missing, launch_chromium, start_server
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+
+from editor_screenshot import (  # noqa: E402 - tools/, beside the tests
+    VIEWPORT,
+    chromium_missing,
+    launch_chromium,
+    start_server,
+)
 
 _missing = chromium_missing()
 pytestmark = pytest.mark.skipif(_missing is not None, reason=f"browser test: {_missing}")

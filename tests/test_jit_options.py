@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from tabx import jit_options
-from tabx.bench import make_rollout
-from tabx.bench_suite import host_batch
 from tabx.controllers import Controller, with_tiers
 from tabx.env import TabxEnv
 from tabx.params import EnvConfig
 from tabx.random_levels import random_levels
+from tabx_bench.simulator import make_rollout
+from tabx_bench.suite import host_batch
 
 SMALL = EnvConfig(max_allies=3, max_enemies=3, max_zones=2)
 
@@ -36,7 +36,7 @@ def test_default_compiler_on_request_or_on_unmeasured_jaxlib(monkeypatch):
     monkeypatch.setenv("TABX_DEFAULT_COMPILER", "1")
     assert jit_options.simulator_compiler_options() is None
     monkeypatch.delenv("TABX_DEFAULT_COMPILER")
-    monkeypatch.setattr("tabx._xla_flags._KNOWN_JAXLIB_PREFIXES", ("99.",))
+    monkeypatch.setattr("tabx.xla_flags._KNOWN_JAXLIB_PREFIXES", ("99.",))
     assert jit_options.simulator_compiler_options() is None
 
 
@@ -68,7 +68,7 @@ def test_simulator_jit_computes_what_plain_jit_computes(levels, monkeypatch, ene
     controllers = (Controller("random"), Controller.parse(enemy))
     levels = with_tiers(levels, controllers)
     tuned = make_rollout(env, 24, controllers=controllers)(levels, jax.random.key(1))
-    monkeypatch.setattr("tabx.bench.simulator_jit", jax.jit)
+    monkeypatch.setattr("tabx_bench.simulator.simulator_jit", jax.jit)
     plain = make_rollout(env, 24, controllers=controllers)(levels, jax.random.key(1))
     tuned, plain = jax.tree.leaves(tuned)[1:], jax.tree.leaves(plain)[1:]  # leaf 0: the key
     assert len(tuned) == len(plain)

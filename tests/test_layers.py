@@ -1,10 +1,14 @@
 """The plan of the house: imports run one way, `tabx` <- `level_buffer` <- `ued` <- `workers` <-
-`tabx_ued` (the command line), and no two modules import each other, directly or round a loop
-(docs/architecture.md). Imports inside functions count: they are dependencies all the same.
+`tabx_bench` (benchmarks) <- `tabx_ued` (the command line), and no two modules import each
+other, directly or round a loop (docs/architecture.md). Imports inside functions count: they are
+dependencies all the same. The simulator package holds the simulator: no benchmark, profiler or
+command module lives under tabx/.
 """
 
 from __future__ import annotations
 
+import ast
+import fnmatch
 import os
 from pathlib import Path
 
@@ -12,8 +16,15 @@ import grimp
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("tabx", "level_buffer", "ued", "workers", "tabx_ued")
+PACKAGES = ("tabx", "level_buffer", "ued", "workers", "tabx_bench", "tabx_ued")
 LAYERS = PACKAGES  # lowest first
+# `python -m tabx`: the one module of the simulator package that names a layer above it (it runs
+# the command line, `tabx_ued.cli.main`), and the one that may be a command.
+ENTRY_POINTS = frozenset({"tabx.__main__"})
+# Module (or package) names under tabx/ that belong to the layers above: benchmarks, the
+# profiler and its trace readers, other simulators' wrappers, commands.
+NOT_SIMULATOR = ("bench*", "*profiler*", "stage_profile", "step_stages", "hlo_text", "xplane",
+                 "peers", "cli", "*_cli", "commands", "*_commands", "__main__")
 
 
 def import_cycles(graph: grimp.ImportGraph) -> list[list[str]]:
@@ -63,10 +74,39 @@ def import_cycles(graph: grimp.ImportGraph) -> list[list[str]]:
 def upward_imports(graph: grimp.ImportGraph) -> list[str]:
     rank = {name: i for i, name in enumerate(LAYERS)}
     bad = []
-    for module in sorted(graph.modules):
+    for module in sorted(graph.modules - ENTRY_POINTS):
         for imported in sorted(graph.find_modules_directly_imported_by(module)):
             if rank[imported.split(".")[0]] > rank[module.split(".")[0]]:
                 bad.append(f"{module} -> {imported}")
+    return bad
+
+
+def imports_argparse(source: str) -> bool:
+    """The module imports argparse (anywhere in it): it parses a command line."""
+    for node in ast.walk(ast.parse(source)):
+        names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                 else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+        if any(name == "argparse" or name.startswith("argparse.") for name in names):
+            return True
+    return False
+
+
+def non_simulator_modules(package: Path) -> list[str]:
+    """Modules under the simulator package `package` that are a benchmark, a profiler or a
+    command: by name (`NOT_SIMULATOR`, also for a folder on the way) or because they parse a
+    command line (import argparse). The entry points are exempt."""
+    bad = []
+    for path in sorted(package.rglob("*.py")):
+        parts = path.relative_to(package.parent).with_suffix("").parts
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        module = ".".join(parts)
+        if module in ENTRY_POINTS:
+            continue
+        if any(fnmatch.fnmatch(part, pattern) for part in parts[1:] for pattern in NOT_SIMULATOR):
+            bad.append(f"{module} (its name)")
+        elif imports_argparse(path.read_text()):
+            bad.append(f"{module} (imports argparse)")
     return bad
 
 
@@ -81,6 +121,10 @@ def test_no_module_imports_from_a_layer_above(graph):
 
 def test_no_import_cycles(graph):
     assert import_cycles(graph) == []
+
+
+def test_the_simulator_package_holds_no_benchmark_profiler_or_command():
+    assert non_simulator_modules(ROOT / "tabx") == []
 
 
 def test_import_linter_contract_is_kept():
@@ -109,3 +153,27 @@ def test_the_checks_catch_what_they_forbid():
     graph.add_import(importer="tabx.b", imported="ued.d")  # the simulator reaching up
     assert upward_imports(graph) == ["tabx.b -> ued.d"]
     assert import_cycles(graph) == [["tabx.a", "tabx.b", "tabx.c", "ued.d"]]
+
+
+def test_the_simulator_rule_catches_what_it_forbids(tmp_path):
+    package = tmp_path / "tabx"
+    for name, text in [("env.py", "import jax\n"), ("profiles.py", "X = 1\n"),
+                       ("__main__.py", "import argparse\n"), ("bench_x.py", ""),
+                       ("peers/__init__.py", ""), ("scenarios/cli.py", ""),
+                       ("editor/screenshot.py",
+                        "def f():\n    from argparse import ArgumentParser\n"),
+                       ("stage_profile.py", ""), ("hlo_text.py", "")]:
+        (package / name).parent.mkdir(parents=True, exist_ok=True)
+        (package / name).write_text(text)
+    assert non_simulator_modules(package) == [
+        "tabx.bench_x (its name)", "tabx.editor.screenshot (imports argparse)",
+        "tabx.hlo_text (its name)", "tabx.peers (its name)",
+        "tabx.scenarios.cli (its name)", "tabx.stage_profile (its name)"]
+
+    graph = grimp.ImportGraph()
+    for module in ("tabx.__main__", "tabx.env", "tabx_ued.cli"):
+        graph.add_module(module)
+    graph.add_import(importer="tabx.__main__", imported="tabx_ued.cli")  # the entry point
+    assert upward_imports(graph) == []
+    graph.add_import(importer="tabx.env", imported="tabx_ued.cli")
+    assert upward_imports(graph) == ["tabx.env -> tabx_ued.cli"]

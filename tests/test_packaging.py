@@ -20,7 +20,7 @@ from ued.config import ConfigError, load_config
 from ued.config_files import list_configs, resolve_config
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("tabx", "level_buffer", "ued", "workers", "tabx_ued")
+PACKAGES = ("tabx", "level_buffer", "ued", "workers", "tabx_bench", "tabx_ued")
 
 
 def test_version_flag_names_the_package_and_jax(capsys):

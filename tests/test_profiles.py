@@ -111,7 +111,7 @@ def test_config_profile_is_validated_and_applied():
 
 
 def test_rollout_takes_a_profile(capsys):
-    from tabx.cli import main
+    from tabx_ued.cli import main
 
     assert main(["rollout", "cross", "--steps", "4", "--profile", "reference"]) == 0
     assert "profile reference" in capsys.readouterr().out

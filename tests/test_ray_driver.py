@@ -160,7 +160,7 @@ def test_the_local_mode_never_imports_ray():
 
 
 def test_ued_bench_measures_the_same_work_on_both_drivers():
-    from workers.bench import format_table, ray_overhead, run_ued_bench
+    from tabx_bench.ued import format_table, ray_overhead, run_ued_bench
 
     out = io.StringIO()
     results = run_ued_bench(ued_config("accel"), explorers=[1], warmup=2, steps=3, stream=out)
@@ -398,7 +398,7 @@ def test_an_evaluator_killed_mid_evaluation_runs_it_again_on_its_restart(tmp_pat
 
 
 def test_ued_bench_times_an_explorer_restart():
-    from workers.bench import bench_restart
+    from tabx_bench.ued import bench_restart
 
     out = io.StringIO()
     result = bench_restart(ray, ued_config("robust_plr"), True, out)

@@ -21,7 +21,6 @@ from test_learners_helpers import tiny_config
 from test_payoff import MIRROR, mirror_level
 from test_qlearning import tiny_q_config
 
-import tabx.cli as simulator_cli
 from tabx import constants as C
 from tabx.rollout import play_episode
 from tabx_ued.cli import main
@@ -65,8 +64,8 @@ def runs(tmp_path_factory, mirror_file) -> Path:
     return folder
 
 
-def cli(capsys, *argv: str, command=main) -> tuple[int, str, str]:
-    code = command(list(argv))
+def cli(capsys, *argv: str) -> tuple[int, str, str]:
+    code = main(list(argv))
     out, err = capsys.readouterr()
     return code, out, err
 
@@ -161,11 +160,3 @@ def test_bad_run_folders_are_one_clear_error(capsys, runs, tmp_path, mirror_file
         assert code == 2 and len(lines) == 1 and not out, (argv, err)
         assert lines[0].startswith("tabx rollout: error: ") and expected in lines[0], lines[0]
     assert "cannot be restored" in cli(capsys, "rollout", "--ally", str(damaged))[2]
-
-
-def test_the_simulator_alone_refuses_a_run_folder(capsys, runs):
-    code, _, err = cli(capsys, "rollout", "--ally", str(runs / "ally"),
-                       command=simulator_cli.main)
-    assert code == 2
-    assert f"--ally: {runs / 'ally'} is a folder: playing a trained policy (a run folder) " \
-           f"needs the full command line" in err

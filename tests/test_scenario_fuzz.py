@@ -20,11 +20,7 @@ from hypothesis import strategies as st
 from tabx import constants as C
 from tabx.scenarios import ScenarioError, load_file, load_named, load_scenario
 from tabx.scenarios.format import MAX_DESCRIPTION, MAX_JSON_DEPTH, parse_json
-
-try:
-    from tabx.cli import main as cli_main
-except ImportError:  # the command line may move to a top-level package
-    from tabx_ued.cli import main as cli_main
+from tabx_ued.cli import main as cli_main
 
 BUNDLED = Path(__file__).resolve().parent.parent / "tabx" / "data" / "scenarios"
 FUZZ = settings(max_examples=int(os.environ.get("TABX_HYPOTHESIS_EXAMPLES", "60")),

@@ -10,7 +10,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tabx import cli
 from tabx import constants as C
 from tabx import params as P
 from tabx.scenarios import (
@@ -27,6 +26,7 @@ from tabx.scenarios import (
     save_scenario,
     user_scenario_dir,
 )
+from tabx_ued import cli
 
 BASE = {
     "format": "tabx-scenario/1",

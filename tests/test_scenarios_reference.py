@@ -200,7 +200,7 @@ def test_reference_healing_flag_override(tmp_path: Path):
 
 
 def test_cli_validate_reference_file(capsys):
-    from tabx import cli
+    from tabx_ued import cli
 
     path = SCENARIOS / "eval_scenarios/zones/2L2B2S-1.json"
     assert cli.main(["scenarios", "validate", str(path)]) == 0

@@ -138,7 +138,7 @@ def test_run_folders_from_before_matmul_dtype_keep_float32(tmp_path):
 
 
 def test_bench_train_parser():
-    from ued.learners.bench import add_train_bench
+    from tabx_bench.train import add_train_bench
 
     parser = argparse.ArgumentParser()
     which = parser.add_subparsers(dest="bench_command")
@@ -160,7 +160,7 @@ import jax, jax.numpy as jnp
 jax.config.update("jax_compilation_cache_dir", {cache!r})
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 (jnp.ones(3) + 1).block_until_ready()  # the process's first compile: JAX now uses the cache
-from ued.learners.bench import run_train_bench
+from tabx_bench.train import run_train_bench
 try:
     r = run_train_bench("ippo", num_envs=4, num_steps=4, updates=1, matmul_dtype="float32")
     print("measured", r.first_update_s > 0 and r.update_s > 0 and r.steps_per_s > 0
@@ -189,7 +189,7 @@ def test_bench_train_refuses_a_first_update_loaded_from_a_cache(tmp_path):
 
 
 def test_an_unexpected_error_is_one_line_and_debug_shows_the_traceback(capsys, monkeypatch):
-    from tabx.cli import run
+    from tabx_ued.cli import run
 
     def add_boom(subparsers):
         boom = subparsers.add_parser("boom")

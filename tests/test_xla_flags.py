@@ -1,25 +1,28 @@
-"""`tabx._xla_flags`: the XLA:CPU settings `import tabx` adds to XLA_FLAGS, and when it leaves
-them alone."""
+"""`tabx.xla_flags`: the XLA:CPU settings of the `tabx` command, when `apply()` leaves XLA_FLAGS
+alone, and who applies them (not `import tabx`)."""
 
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
-from tabx import _xla_flags
+from tabx import xla_flags
 
 
 @pytest.fixture
 def flags(monkeypatch):
     """Run `apply()` on a given XLA_FLAGS and core count; return the resulting XLA_FLAGS."""
     monkeypatch.delenv("TABX_KEEP_XLA_FLAGS", raising=False)
-    monkeypatch.setattr(_xla_flags, "jaxlib_is_measured", lambda: True)
+    monkeypatch.setattr(xla_flags, "jaxlib_is_measured", lambda: True)
 
     def run(initial: str, cores: int = 4) -> str:
         monkeypatch.setenv("XLA_FLAGS", initial)
-        monkeypatch.setattr(_xla_flags, "usable_cores", lambda: cores)
-        _xla_flags.apply()
+        monkeypatch.setattr(xla_flags, "usable_cores", lambda: cores)
+        xla_flags.apply()
         return os.environ["XLA_FLAGS"]
 
     return run
@@ -46,9 +49,32 @@ def test_opt_out_and_unmeasured_jaxlib_leave_xla_flags_alone(flags, monkeypatch)
     monkeypatch.setenv("TABX_KEEP_XLA_FLAGS", "1")
     assert flags("--xla_cpu_foo=1") == "--xla_cpu_foo=1"
     monkeypatch.delenv("TABX_KEEP_XLA_FLAGS")
-    monkeypatch.setattr(_xla_flags, "jaxlib_is_measured", lambda: False)
+    monkeypatch.setattr(xla_flags, "jaxlib_is_measured", lambda: False)
     assert flags("") == ""
 
 
 def test_usable_cores_is_positive():
-    assert _xla_flags.usable_cores() >= 1
+    assert xla_flags.usable_cores() >= 1
+
+
+def test_import_tabx_changes_no_environment_variable_and_a_ray_actor_module_applies_them():
+    """In a fresh process: importing the simulator leaves the environment as it was and starts
+    no JAX backend (XLA_FLAGS can still be set after it); the module Ray loads in an actor's
+    process applies the command's settings, and the command table starts no backend either."""
+    code = ("import os\n"
+            "import jax\n"  # JAX sets variables of its own when imported (TF_CPP_MIN_LOG_LEVEL)
+            "before = dict(os.environ)\n"
+            "import tabx, tabx.env, tabx.rollout, tabx.scenarios, tabx.render, tabx.marl\n"
+            "assert dict(os.environ) == before, 'import tabx changed the environment'\n"
+            "from jax._src import xla_bridge\n"
+            "import workers.actors, tabx_ued.commands\n"
+            "assert not xla_bridge.backends_are_initialized(), 'an import started JAX'\n"
+            "print(os.environ.get('XLA_FLAGS', ''))\n")
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "TABX_KEEP_XLA_FLAGS")}
+    env["PYTHONPATH"] = os.pathsep.join([str(Path(__file__).resolve().parents[1]),
+                                         env.get("PYTHONPATH", "")])
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    if xla_flags.jaxlib_is_measured():
+        assert "--xla_cpu_experimental_ynn_fusion_type=" in done.stdout.split()

@@ -46,7 +46,7 @@ def commit_of(folder: Path) -> str:
 def run_bench(folder: Path, bench_args: list[str], out: Path) -> list[dict]:
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(
         [str(folder), *filter(None, [os.environ.get("PYTHONPATH")])]))
-    command = [sys.executable, "-m", "tabx.cli", "bench", "env", *bench_args, "--json", str(out)]
+    command = [sys.executable, "-m", "tabx", "bench", "env", *bench_args, "--json", str(out)]
     subprocess.run(command, env=env, cwd=folder, check=True, stdout=subprocess.DEVNULL)
     return [json.loads(line) for line in out.read_text().splitlines() if line.strip()]
 

@@ -31,7 +31,9 @@ from pathlib import Path
 
 from ab_bench import commit_of, parse_tree  # tools/, beside this script
 
-import tabx  # noqa: F401 - first: its XLA flags (one CPU device per core) before JAX starts
+from tabx import xla_flags
+
+xla_flags.apply()  # first: the `tabx` command's XLA flags (one CPU device per core)
 
 try:  # a checkout's program may call the native kernels: their targets must exist here too
     from tabx.native_lib import native_available
@@ -43,9 +45,17 @@ else:
 # Run by the child with its checkout first on PYTHONPATH: build, compile and serialise.
 _CHILD = r"""
 import pickle, sys
+try:  # the `tabx` command's XLA flags, before JAX starts
+    from tabx import xla_flags
+    xla_flags.apply()
+except ImportError:  # a checkout whose `import tabx` applies them
+    import tabx
 import jax, jax.numpy as jnp, numpy as np
 from jax.experimental import serialize_executable
-from tabx.bench import bench_level, make_rollout
+try:
+    from tabx_bench.simulator import bench_level, make_rollout
+except ImportError:  # a checkout with the benchmark inside the simulator package
+    from tabx.bench import bench_level, make_rollout
 from tabx.controllers import Controller, with_tiers
 from tabx.env import TabxEnv
 from tabx.params import repeat_level
@@ -60,9 +70,8 @@ config, level = bench_level(int(team), int(zones))
 levels = repeat_level(with_tiers(level, controllers), int(envs))
 leaves, treedef = jax.tree.flatten(levels)
 leaves = [np.asarray(x) for x in leaves]
-import tabx.bench
 # The rollout is compiled below, as the body of one top-level jit with the checkout's options.
-tabx.bench.simulator_jit = lambda fn, **kwargs: fn
+sys.modules[make_rollout.__module__].simulator_jit = lambda fn, **kwargs: fn
 kwargs = {} if make_rollout.__code__.co_argcount < 4 else {"controllers": controllers}
 rollout = make_rollout(TabxEnv(config), int(steps), True, **kwargs)
 def flat(leaves, key_data):

@@ -21,7 +21,7 @@ sys.path.insert(0, str(REPO))
 
 from tabx.files import atomic_write_bytes  # noqa: E402
 from tabx.scenarios import read_reference_scenario, save_scenario  # noqa: E402
-from tabx.scenarios.cli import composition  # noqa: E402
+from tabx.scenarios.summary import composition  # noqa: E402
 
 DEFAULT_REFERENCE = REPO.parent / "shared" / "reference" / "tabx-data"
 SOURCES = (  # (reference folder, our folder, split)

@@ -7,7 +7,7 @@
 Prints the total (exclusive) time and count per kernel kind (`fusion.12` and `fusion.7` are one
 kind, `fusion`) or, with `--by-kernel`, per kernel, and how busy XLA's threads were: their summed
 kernel time against the wall time from the first kernel to the end of the last. The trace is
-read by `tabx.xplane`; `tabx bench profile` goes further and splits a simulator step's kernel
+read by `tabx_bench.xplane`; `tabx bench profile` goes further and splits a simulator step's kernel
 time by stage. How to take a trace: docs/performance.md, "How to profile".
 """
 
@@ -16,7 +16,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from tabx.xplane import fields, kernel_spans, summarise
+from tabx_bench.xplane import fields, kernel_spans, summarise
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -132,9 +132,9 @@ def policy_team(policy: TrainedPolicy, team: int, greedy: bool = False) -> Polic
 
 
 def load_policy_team(run_dir: str, team: int, greedy: bool = False) -> PolicyTeam:
-    """The `tabx.policy_team.PolicyLoader` of the full command line: the newest checkpoint of
-    `run_dir` seated on `team`. ConfigError (a CheckpointError for a damaged checkpoint)
-    naming the folder when it cannot."""
+    """The newest checkpoint of `run_dir` seated on `team` (`tabx rollout --ally RUN_DIR`).
+    ConfigError (a CheckpointError for a damaged checkpoint) naming the folder when it
+    cannot."""
     return policy_team(load_policy(run_dir), team, greedy)
 
 

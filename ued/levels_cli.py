@@ -57,8 +57,7 @@ def grid_image(images: list[Image.Image], columns: int) -> Image.Image:
 
 
 def cmd_sample(args: argparse.Namespace) -> int:
-    from tabx.render import render_level, save_png
-    from tabx.scenarios.cli import check_render_options
+    from tabx.render import check_render_options, render_level, save_png
     from ued.config import ConfigError, load_config
 
     check_render_options(args.out, args.scale)

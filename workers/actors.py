@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from tabx import xla_flags
 from tabx.params import EnvParams
 from ued import compile_cache
 from ued.config import TrainConfig
@@ -37,6 +38,11 @@ from workers.explorer import Explorer
 from workers.learner import Learner
 from workers.level_service import to_device, to_host
 from workers.local import evaluators_for, level_service_for
+
+# An actor's process is started by Ray, not by the `tabx` command: it applies the command's
+# XLA settings itself (one CPU device per usable core of its node), when Ray loads the actor
+# class, before JAX starts its backend there (no module imported above starts it).
+xla_flags.apply()
 
 
 @dataclass(frozen=True)

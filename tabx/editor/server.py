@@ -120,7 +120,7 @@ def _range(r: Range) -> dict[str, Any]:
 
 
 def _summary(s: Scenario) -> dict[str, Any]:
-    from tabx.scenarios.cli import composition, zone_summary
+    from tabx.scenarios.summary import composition, zone_summary
 
     return {"name": s.name, "category": s.category, "split": s.split or "train",
             "allies": len(s.allies), "enemies": len(s.enemies), "zones": len(s.zones),

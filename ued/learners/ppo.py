@@ -13,7 +13,7 @@ restarts in the same level), computes GAE, and runs `update_epochs` epochs of
 `num_minibatches` minibatches over envs (all agents of an env stay in one minibatch, so
 sequences are whole and the recurrent state starts from zeros at the rollout start).
 
-With several local devices (one per core on a CPU, see tabx/_xla_flags.py) the envs are split
+With several local devices (one per core on a CPU, see tabx/xla_flags.py) the envs are split
 over them (`learner_devices`): each device plays and learns on its share inside a `shard_map`,
 the loss means divide by counts over all devices and the gradients are summed (`lax.psum`),
 so the parameters stay replicated; results come back on the first device.
@@ -499,7 +499,7 @@ class PPOLearner:
         of them, or with 0 the most that split the envs into equal shares of each of
         `minibatches` (default: the config's) minibatches. Not `strict` (scoring batches of
         any size): at most `ppo.num_devices`, as many as divide the envs evenly. On CPU,
-        `tabx` makes one device per core (tabx/_xla_flags.py)."""
+        the `tabx` command makes one device per core (tabx/xla_flags.py)."""
         if minibatches is None:
             minibatches = self.ppo.num_minibatches
         wanted = self.ppo.num_devices

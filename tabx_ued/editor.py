@@ -17,6 +17,7 @@ DEFAULT_PORT = 8765
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    """Add `tabx editor`."""
     p = subparsers.add_parser("editor", help="the scenario editor (a local web page)",
                               description=__doc__)
     p.add_argument("name", nargs="?", help="scenario to open: a name (crossfire), a composition "
@@ -52,6 +53,7 @@ def _warm_up() -> None:
 
 
 def cmd_editor(args: argparse.Namespace) -> int:
+    """Serve the editor until Ctrl-C."""
     from tabx.editor.server import make_server
     from tabx.errors import UserError
     from tabx.scenarios import ScenarioError, load_named, user_scenario_dir
@@ -91,3 +93,6 @@ def cmd_editor(args: argparse.Namespace) -> int:
     finally:
         server.server_close()
     return 0
+
+
+__all__ = ["DEFAULT_PORT", "add_parser", "can_open_browser", "cmd_editor"]

@@ -1,7 +1,7 @@
 """Headless Chromium for the editor: the launch helper of the end-to-end test, and the script
 that takes the documentation's screenshot.
 
-    python -m tabx.editor.screenshot docs/img/editor.png [--scenario superking]
+    python tools/editor_screenshot.py docs/img/editor.png [--scenario superking]
 
 Uses Debian's Chromium (`/usr/bin/chromium`, `apt-get install chromium`) driven by the
 `playwright` Python package; it never downloads a browser. The flags keep Chromium off the

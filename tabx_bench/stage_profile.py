@@ -4,13 +4,13 @@ For each team size it builds the rollout of `tabx bench env` (same level, contro
 observation protocol), compiles it, warms it up, times `--repeats` calls, then runs as many
 under `jax.profiler` with XLA:CPU's per-kernel trace events. Those exist only when XLA_FLAGS
 holds `--xla_cpu_enable_xprof_traceme=true` before JAX starts its backend, so the measuring
-runs in a child process (`python -m tabx.bench_profile`) whose XLA_FLAGS are the caller's plus
+runs in a child process (`python -m tabx_bench.stage_profile`) whose XLA_FLAGS are the caller's plus
 that flag. The child leaves, per team size, the compiled program's HLO text, the trace and a
 `meta.json` in a folder (`--trace-dir`, else a temporary one, removed afterwards).
 
-The parent then reads the kernel events (tabx.xplane), finds each kernel's instructions and
-their Python call chains in the HLO text (tabx.hlo_text) and adds the kernel's exclusive time
-to the stages of tabx.step_stages (fused kernels spanning several stages split by output
+The parent then reads the kernel events (tabx_bench.xplane), finds each kernel's instructions and
+their Python call chains in the HLO text (tabx_bench.hlo_text) and adds the kernel's exclusive time
+to the stages of tabx_bench.step_stages (fused kernels spanning several stages split by output
 elements: an estimate). It prints, per team size, each stage's microseconds per scan step for
 the whole batch and per env, and its share of the kernel time; the summed kernel time against
 the wall time (XLA:CPU runs some kernels on two threads at once); and a rough memory bound:
@@ -35,7 +35,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tabx.bench import (
+from tabx import xla_flags
+from tabx.controllers import Controller, with_tiers
+from tabx.env import TabxEnv
+from tabx.errors import UserError
+from tabx.native_lib import native_available
+from tabx.params import EnvParams, repeat_level
+from tabx_bench.hlo_text import parse_hlo
+from tabx_bench.simulator import (
     Progress,
     bench_level,
     load_average,
@@ -43,14 +50,8 @@ from tabx.bench import (
     make_rollout,
     write_results,
 )
-from tabx.controllers import Controller, with_tiers
-from tabx.env import TabxEnv
-from tabx.errors import UserError
-from tabx.hlo_text import parse_hlo
-from tabx.native_lib import native_available
-from tabx.params import EnvParams, repeat_level
-from tabx.step_stages import OTHER, STAGES, attribute
-from tabx.xplane import kernel_spans, newest_trace
+from tabx_bench.step_stages import OTHER, STAGES, attribute
+from tabx_bench.xplane import kernel_spans, newest_trace
 
 TRACEME_FLAG = "--xla_cpu_enable_xprof_traceme=true"
 _HLO_FILE, _META_FILE, _TRACE_FOLDER = "hlo.txt", "meta.json", "trace"
@@ -172,7 +173,8 @@ def team_folder(root: Path, team_size: int) -> Path:
 
 
 def _child_main(argv: list[str]) -> int:
-    """`python -m tabx.bench_profile SPEC_JSON FOLDER`: measure every team size of the spec."""
+    """`python -m tabx_bench.stage_profile SPEC_JSON FOLDER`: measure every team size of the
+    spec."""
     spec, root = ProfileSpec(**json.loads(argv[0])), Path(argv[1])
     if TRACEME_FLAG not in os.environ.get("XLA_FLAGS", ""):
         print(f"error: XLA_FLAGS lacks {TRACEME_FLAG}", file=sys.stderr)
@@ -198,7 +200,8 @@ def child_environment() -> dict[str, str]:
 
 def run_child(spec: ProfileSpec, root: Path) -> None:
     """Measure `spec` in a child process with the kernel trace flag, into `root`."""
-    command = [sys.executable, "-m", "tabx.bench_profile", json.dumps(asdict(spec)), str(root)]
+    command = [sys.executable, "-m", "tabx_bench.stage_profile", json.dumps(asdict(spec)),
+               str(root)]
     result = subprocess.run(command, env=child_environment(), check=False)
     if result.returncode != 0:
         raise RuntimeError(f"the profiling process exited with code {result.returncode} "
@@ -374,4 +377,7 @@ __all__ = ["ProfileSpec", "StageProfile", "analyse", "bench_profile",
 
 
 if __name__ == "__main__":
+    # The child is a process of its own: the `tabx` command's XLA settings (those the parent
+    # passed on win), before JAX starts its backend.
+    xla_flags.apply()
     sys.exit(_child_main(sys.argv[1:]))

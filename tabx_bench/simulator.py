@@ -1,6 +1,6 @@
 """`tabx bench env`: simulator throughput and compile time. `tabx bench scale | reconfig |
-compare` build on the machinery here (tabx/bench_suite.py); the command line is
-tabx/bench_cli.py.
+compare` build on the machinery here (tabx_bench/suite.py); the command line is
+tabx_bench/cli.py.
 
 `--ally` / `--enemy` choose each team's controller (tabx.controllers): the scripted-enemy
 benchmark is `--enemy heuristic:medium` (random allies, scripted enemies).

@@ -9,7 +9,7 @@ XPlane.event_metadata) and returns those kernel events with their *exclusive* ti
 that wraps others on its thread (a `while` running part of its body inline) counts only the
 time none of them ran, so summed kernel time never counts a microsecond twice.
 
-Used by `tabx bench profile` (tabx/bench_profile.py) and tools/xplane_summary.py.
+Used by `tabx bench profile` (tabx_bench/stage_profile.py) and tools/xplane_summary.py.
 """
 
 from __future__ import annotations

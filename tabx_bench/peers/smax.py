@@ -8,7 +8,7 @@ sampler as ours, `tabx.env.random_legal_actions` over SMAX's avail-action masks)
 what SMAX's `step(..., reset_state)` does, and what our `step_autoreset` does), observations
 carried in the scan
 (or dropped with `with_obs=False`), one warm-up call and `repeats` timed calls: the protocol of
-`tabx.bench.run_one`.
+`tabx_bench.simulator.run_one`.
 
 Reconfiguration: in SMAX a scenario's unit counts are array shapes and its unit types are
 constants of the environment object, so a new scenario (new types and counts) is a new
@@ -17,7 +17,7 @@ rollout, run `num_envs` x `steps`, wait for the result. `measure` < `scenarios` 
 first `measure` scenarios and extrapolates linearly (flagged `extrapolated` in the result).
 
 Needs jaxmarl (`pip install -e ".[peers]"`); importing this module without it raises
-`tabx.peers.PeerUnavailable` with the install command.
+`tabx_bench.peers.PeerUnavailable` with the install command.
 """
 
 from __future__ import annotations
@@ -29,11 +29,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tabx.bench import BenchResult, Progress, ReconfigResult, load_average, time_compiled
 from tabx.compile_counter import CompileCounter
 from tabx.devices import env_devices, env_sharding
 from tabx.env import random_legal_actions
-from tabx.peers import INSTALL_HINT, PeerUnavailable
+from tabx_bench.peers import INSTALL_HINT, PeerUnavailable
+from tabx_bench.simulator import BenchResult, Progress, ReconfigResult, load_average, time_compiled
 
 try:
     import jaxmarl
@@ -109,7 +109,7 @@ def make_smax_rollout(env: SMAX, num_envs: int, steps: int, with_obs: bool = Tru
 
 
 class SmaxSimulator:
-    """SMAX behind the interface `tabx.bench_suite.run_compare` expects."""
+    """SMAX behind the interface `tabx_bench.suite.run_compare` expects."""
 
     name = "SMAX"
 

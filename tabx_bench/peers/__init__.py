@@ -11,5 +11,5 @@ class PeerUnavailable(RuntimeError):
 
 INSTALL_HINT = ('install the optional peers extra: pip install -e ".[peers]" (jaxmarl==0.2.0); '
                 "or, to keep it out of this environment, python -m venv --system-site-packages "
-                "VENV && VENV/bin/pip install jaxmarl==0.2.0 and run VENV/bin/python -m tabx.cli "
+                "VENV && VENV/bin/pip install jaxmarl==0.2.0 and run VENV/bin/python -m tabx "
                 "bench compare")

@@ -5,15 +5,23 @@ from __future__ import annotations
 
 import argparse
 import math
-from collections import Counter
 
-from tabx.scenarios.format import CATEGORIES, Scenario, ScenarioError
-from tabx.scenarios.registry import list_scenarios, load_file, load_named
-
-ZONE_LETTER = {"lava": "L", "bush": "B", "swamp": "S"}
+from tabx.errors import UserError
+from tabx.render import check_render_options, render_level, save_png
+from tabx.scenarios import (
+    CATEGORIES,
+    Scenario,
+    ScenarioError,
+    config_for,
+    list_scenarios,
+    load_file,
+    load_named,
+)
+from tabx.scenarios.summary import composition, summary, zone_summary
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    """Add `tabx scenarios` and its actions."""
     parser = subparsers.add_parser("scenarios", help="list, show and validate scenarios",
                                    description=__doc__)
     sub = parser.add_subparsers(dest="scenarios_command", metavar="ACTION")
@@ -37,30 +45,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _user_error(err: ScenarioError) -> Exception:
-    from tabx.errors import UserError
-
     return UserError(str(err))
-
-
-def composition(units: list) -> str:
-    """`2F1M` style composition string of a list of units."""
-    from tabx import constants as C
-
-    counts = Counter(u.unit for u in units)
-    return "".join(f"{counts[s.name]}{s.char}" for s in C.UNIT_SPECS if counts[s.name]) or "-"
-
-
-def zone_summary(scenario: Scenario) -> str:
-    counts = Counter(z.type for z in scenario.zones)
-    return "".join(f"{counts[t]}{ZONE_LETTER[t]}" for t in ZONE_LETTER if counts[t]) or "-"
-
-
-def summary(s: Scenario) -> str:
-    """One line: name, category, allies v enemies, zones."""
-    return (f"{s.name} ({s.category}{', ' + s.split if s.split else ''}): "
-            f"{len(s.allies)} v {len(s.enemies)} units "
-            f"({composition(s.allies)} vs {composition(s.enemies)}), "
-            f"{len(s.zones)} zones ({zone_summary(s)}), arena {s.arena[0]:g} x {s.arena[1]:g}")
 
 
 def cmd_list(args: argparse.Namespace) -> int:
@@ -150,28 +135,8 @@ def cmd_validate(args: argparse.Namespace) -> int:
     return 0
 
 
-MAX_SCALE = 40.0
-
-
-def check_render_options(out: str, scale: float) -> None:
-    """UserError unless `--out` is a writable .png path and `--scale` is sensible (shared with
-    `tabx buffer render`)."""
-    from tabx.errors import UserError
-    from tabx.render import check_png_path
-
-    if not (0 < scale <= MAX_SCALE):  # also rejects nan
-        raise UserError(f"--scale must be in (0, {MAX_SCALE:g}] pixels per world unit, "
-                        f"got {scale:g}")
-    try:
-        check_png_path(out)
-    except ValueError as err:
-        raise UserError(f"--out {err}") from None
-
-
 def cmd_render(args: argparse.Namespace) -> int:
-    from tabx.render import render_level, save_png
-    from tabx.scenarios.format import config_for
-
+    """Draw a scenario's start state as a PNG."""
     check_render_options(args.out, args.scale)
     try:
         s = load_named(args.name)
@@ -184,3 +149,6 @@ def cmd_render(args: argparse.Namespace) -> int:
     save_png(image, args.out)
     print(f"wrote {args.out} ({image.width} x {image.height}): {summary(s)}")
     return 0
+
+
+__all__ = ["add_parser", "cmd_list", "cmd_render", "cmd_show", "cmd_validate"]

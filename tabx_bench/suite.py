@@ -1,6 +1,6 @@
 """`tabx bench scale | reconfig | compare`: scalability, reconfiguration, and a side by
 side comparison with SMAX. The machinery (`make_rollout`, `run_one`, `BenchResult`, progress,
-JSON lines) is tabx/bench.py's; the SMAX side lives in tabx/peers/smax.py.
+JSON lines) is tabx_bench/simulator.py's; the SMAX side lives in tabx_bench/peers/smax.py.
 
 scale     env steps/s versus num_envs for 3v3, 5v5, 8v8 and 10v10, random actions for both
           teams and random allies versus the scripted enemy; compile time per configuration;
@@ -27,7 +27,13 @@ from dataclasses import asdict, dataclass
 import jax
 import numpy as np
 
-from tabx.bench import (
+from tabx.compile_counter import CompileCounter
+from tabx.controllers import Controller
+from tabx.devices import env_devices, env_sharding
+from tabx.env import TabxEnv
+from tabx.native_lib import native_available
+from tabx.params import EnvConfig, EnvParams
+from tabx_bench.simulator import (
     RANDOM_BOTH,
     BenchResult,
     Progress,
@@ -39,12 +45,6 @@ from tabx.bench import (
     run_one,
     write_results,
 )
-from tabx.compile_counter import CompileCounter
-from tabx.controllers import Controller
-from tabx.devices import env_devices, env_sharding
-from tabx.env import TabxEnv
-from tabx.native_lib import native_available
-from tabx.params import EnvConfig, EnvParams
 
 SCALE_TEAM_SIZES = (3, 5, 8, 10)
 SCALE_NUM_ENVS = (1, 4, 16, 64, 256, 1024, 4096)
@@ -377,12 +377,12 @@ def load_peer(name: str, devices: int = 0):
     """The peer simulator object, its envs split over `devices` local devices like ours; a
     UserError telling how to install it when it is missing."""
     from tabx.errors import UserError
-    from tabx.peers import PeerUnavailable
+    from tabx_bench.peers import PeerUnavailable
 
     if name != "smax":
         raise UserError(f"unknown peer {name!r}; expected smax")
     try:
-        from tabx.peers.smax import SmaxSimulator
+        from tabx_bench.peers.smax import SmaxSimulator
 
         return SmaxSimulator(devices)
     except PeerUnavailable as err:

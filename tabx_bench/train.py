@@ -150,8 +150,8 @@ def _run_train_bench(algorithm: str, scenario: str, opponent: str, num_envs: int
 
 
 def bench_train(args: argparse.Namespace) -> int:
-    from tabx.bench import machine_summary, write_results
     from tabx.errors import UserError
+    from tabx_bench.simulator import machine_summary, write_results
     from ued.config import Q_ALGORITHMS
 
     variant = "reference-like" if args.reference_like else "ours"

@@ -10,7 +10,7 @@ P = 0 or 1 means K is outermost (frame 1 prints `parent_frame_id=1`: the parent 
 zero). Following the parents from a frame gives the Python call chain that built the
 instruction, JAX's own frames already filtered out.
 
-Kernel names in an XLA:CPU profile (tabx.xplane) are these instruction names, so a kernel's
+Kernel names in an XLA:CPU profile (tabx_bench.xplane) are these instruction names, so a kernel's
 time can be traced back to the functions whose operations it runs.
 """
 

@@ -1,21 +1,27 @@
-"""The `tabx bench` command and its simulator sub-commands (env, profile, scale, reconfig,
-compare).
+"""The `tabx bench` command: its sub-commands and their arguments.
 
-The measuring code lives in `tabx.bench` (one configuration at a time), `tabx.bench_profile`
-(per-stage step time) and `tabx.bench_suite` (sweeps and the SMAX comparison); this module
-only turns command lines into calls. Layers above the simulator add their own benchmarks
-through `extra` (`tabx bench train` from `ued.learners.bench`, `tabx bench ued` from
-`workers`), so the simulator never imports them.
+    tabx bench env | scale | reconfig | compare    the simulator (tabx_bench.simulator, .suite)
+    tabx bench profile                             per-stage step time (tabx_bench.stage_profile)
+    tabx bench train                               training throughput (tabx_bench.train)
+    tabx bench ued                                 a UED run, local and on Ray (tabx_bench.ued)
+
+The measuring code lives in those modules; this one only turns command lines into calls.
 """
 
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable, Iterable
 
-from tabx.bench import NUM_ENVS, TEAM_SIZES, bench_env
-from tabx.bench_profile import bench_profile
-from tabx.bench_suite import (
+from tabx_bench.arguments import (
+    controllers,
+    int_at_least,
+    int_list,
+    non_negative_ints,
+    team_sizes,
+)
+from tabx_bench.simulator import NUM_ENVS, TEAM_SIZES, bench_env
+from tabx_bench.stage_profile import bench_profile
+from tabx_bench.suite import (
     SCALE_ENEMIES,
     SCALE_NUM_ENVS,
     SCALE_TEAM_SIZES,
@@ -23,23 +29,21 @@ from tabx.bench_suite import (
     bench_reconfig,
     bench_scale,
 )
+from tabx_bench.train import add_train_bench
+from tabx_bench.ued import add_ued_bench
 
-BenchRegistrar = Callable[[argparse._SubParsersAction], None]
 
-
-def add_parser(subparsers: argparse._SubParsersAction,
-               extra: Iterable[BenchRegistrar] = ()) -> argparse._SubParsersAction:
-    """Add `tabx bench` with its simulator benchmarks, then call each of `extra` with the
-    bench sub-command group so it can add its own; returns that group."""
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse._SubParsersAction:
+    """Add `tabx bench` with every benchmark; returns its sub-command group."""
     bench = subparsers.add_parser("bench", help="benchmarks (throughput, compile time)")
     which = bench.add_subparsers(dest="bench_command", metavar="BENCH")
     which.required = True
     env = which.add_parser("env", help="simulator steps/s with random legal actions")
-    env.add_argument("--team-sizes", type=_positive_ints, default=list(TEAM_SIZES),
+    env.add_argument("--team-sizes", type=non_negative_ints, default=list(TEAM_SIZES),
                      help="comma-separated units per team (default 3,5,10)")
-    env.add_argument("--zones", type=_positive_ints, default=[0, 6],
+    env.add_argument("--zones", type=non_negative_ints, default=[0, 6],
                      help="comma-separated zone counts (default 0,6)")
-    env.add_argument("--num-envs", type=_positive_ints, default=list(NUM_ENVS),
+    env.add_argument("--num-envs", type=non_negative_ints, default=list(NUM_ENVS),
                      help="comma-separated env counts (default 1,16,128,1024)")
     env.add_argument("--steps", type=int, default=128, help="scan length (default 128)")
     env.add_argument("--repeats", type=int, default=3, help="timed calls (median; default 3)")
@@ -49,8 +53,8 @@ def add_parser(subparsers: argparse._SubParsersAction,
     env.set_defaults(func=bench_env)
     add_profile_parser(which)
     add_suite_parsers(which)
-    for add in extra:
-        add(which)
+    add_train_bench(which)
+    add_ued_bench(which)
     return which
 
 
@@ -61,8 +65,8 @@ def add_devices_argument(parser: argparse.ArgumentParser) -> None:
 
 
 def add_rollout_arguments(parser: argparse.ArgumentParser) -> None:
-    """--no-obs, --ally and --enemy: what the benchmark rollout (`tabx.bench.make_rollout`)
-    computes besides the step."""
+    """--no-obs, --ally and --enemy: what the benchmark rollout
+    (`tabx_bench.simulator.make_rollout`) computes besides the step."""
     parser.add_argument("--no-obs", dest="obs", action="store_false",
                         help="do not compute observations (random policy; state only)")
     parser.add_argument("--ally", default="random",
@@ -75,7 +79,7 @@ def add_rollout_arguments(parser: argparse.ArgumentParser) -> None:
 def add_profile_parser(which: argparse._SubParsersAction) -> None:
     profile = which.add_parser(
         "profile", help="per-stage time of a simulator step from XLA:CPU's kernel profile")
-    profile.add_argument("--team-sizes", type=_team_sizes, default=list(TEAM_SIZES),
+    profile.add_argument("--team-sizes", type=team_sizes, default=list(TEAM_SIZES),
                          help="comma-separated units per team (default 3,5,10)")
     profile.add_argument("--zones", type=int_at_least(0), default=6,
                          help="zones per level (default 6)")
@@ -101,11 +105,11 @@ def add_profile_parser(which: argparse._SubParsersAction) -> None:
 def add_suite_parsers(which: argparse._SubParsersAction) -> None:
     positive, positive_list = int_at_least(1), int_list(1)
     scale = which.add_parser("scale", help="steps/s versus num_envs for 3v3..10v10 (plot)")
-    scale.add_argument("--team-sizes", type=_team_sizes, default=list(SCALE_TEAM_SIZES),
+    scale.add_argument("--team-sizes", type=team_sizes, default=list(SCALE_TEAM_SIZES),
                        help="comma-separated units per team (default 3,5,8,10)")
     scale.add_argument("--num-envs", type=positive_list, default=list(SCALE_NUM_ENVS),
                        help="comma-separated env counts (default 1,4,16,64,256,1024,4096)")
-    scale.add_argument("--enemy", type=_controllers, default=list(SCALE_ENEMIES),
+    scale.add_argument("--enemy", type=controllers, default=list(SCALE_ENEMIES),
                        help="comma-separated enemy controllers, allies random (default "
                             "random,heuristic:medium)")
     scale.add_argument("--zones", type=int_at_least(0), default=0,
@@ -139,7 +143,7 @@ def add_suite_parsers(which: argparse._SubParsersAction) -> None:
         "compare", help="side by side with SMAX (needs the peers extra: pip install -e "
                         "'.[peers]')")
     compare.add_argument("--peer", default="smax", help="peer simulator (default smax)")
-    compare.add_argument("--team-sizes", type=_team_sizes, default=list(SCALE_TEAM_SIZES),
+    compare.add_argument("--team-sizes", type=team_sizes, default=list(SCALE_TEAM_SIZES),
                          help="comma-separated units per team (default 3,5,8,10)")
     compare.add_argument("--num-envs", type=positive, default=1024,
                          help="envs for the fixed configuration (default 1024)")
@@ -164,68 +168,5 @@ def add_suite_parsers(which: argparse._SubParsersAction) -> None:
     compare.set_defaults(func=bench_compare)
 
 
-# --- argument types --------------------------------------------------------------------------
-
-
-def _positive_ints(text: str) -> list[int]:
-    try:
-        values = [int(v) for v in text.split(",") if v]
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected comma-separated integers, got {text!r}") from None
-    if not values or any(v < 0 for v in values):
-        raise argparse.ArgumentTypeError(f"expected non-negative integers, got {text!r}")
-    return values
-
-
-def int_list(minimum: int) -> Callable[[str], list[int]]:
-    def parse(text: str) -> list[int]:
-        parts = [p.strip() for p in text.split(",")]
-        if not text.strip() or any(not p for p in parts):
-            raise argparse.ArgumentTypeError(
-                f"expected a comma-separated list of integers such as 1,16,256, got {text!r}")
-        try:
-            values = [int(p) for p in parts]
-        except ValueError:
-            raise argparse.ArgumentTypeError(
-                f"expected a comma-separated list of integers, got {text!r}") from None
-        bad = [v for v in values if v < minimum]
-        if bad:
-            raise argparse.ArgumentTypeError(
-                f"every value must be >= {minimum}, got {', '.join(map(str, bad))}")
-        return values
-
-    return parse
-
-
-def int_at_least(minimum: int) -> Callable[[str], int]:
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {value}")
-        return value
-
-    return parse
-
-
-def _team_sizes(text: str) -> list[int]:
-    values = int_list(1)(text)
-    too_big = [v for v in values if v > 100]
-    if too_big:
-        raise argparse.ArgumentTypeError(f"at most 100 units a side, got {too_big[0]}")
-    return values
-
-
-def _controllers(text: str) -> list[str]:
-    parts = [p.strip() for p in text.split(",")]
-    if not text.strip() or any(not p for p in parts):
-        raise argparse.ArgumentTypeError(
-            f"expected comma-separated controllers such as random,heuristic:medium, got {text!r}")
-    return parts
-
-
-__all__ = ["BenchRegistrar", "add_parser", "add_profile_parser", "add_rollout_arguments",
-           "add_suite_parsers", "int_at_least", "int_list"]
+__all__ = ["add_devices_argument", "add_parser", "add_profile_parser", "add_rollout_arguments",
+           "add_suite_parsers"]

@@ -1,7 +1,7 @@
 """Which stage of a simulator step a compiled kernel's work belongs to (`tabx bench profile`).
 
 A kernel of the compiled rollout computes one HLO instruction, or for a fusion many; each
-instruction carries the Python call chain that built it (tabx.hlo_text). The chain is mapped
+instruction carries the Python call chain that built it (tabx_bench.hlo_text). The chain is mapped
 to a stage by this table:
 
 - an OWNER frame claims everything called beneath it, the outermost owner on the chain winning
@@ -32,7 +32,7 @@ import re
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
-from tabx.hlo_text import Frame, HloModule
+from tabx_bench.hlo_text import Frame, HloModule
 
 ACTIONS = "actions"
 SCRIPTED = "scripted policy"
@@ -46,6 +46,9 @@ AUTO_RESET = "auto-reset"
 OTHER = "other"
 STAGES = (ACTIONS, SCRIPTED, PHYSICS, ATTACKS, ZONES, VISION, OBSERVATIONS, REWARDS,
           AUTO_RESET, OTHER)
+
+# Folders whose files the tables below name: the simulator's, and the benchmark's own rollout.
+_PACKAGES = ("tabx", "tabx_bench")
 
 # Frames of these (file, function) decide for everything they call (outermost first).
 _OWNERS: dict[tuple[str, str], str] = {
@@ -87,7 +90,7 @@ _LEAVES: dict[tuple[str, str], str | None] = {
     ("env.py", "TabxEnv.step.<locals>.<lambda>"): REWARDS,  # a finished episode frozen
     ("env.py", "TabxEnv.step"): REWARDS,
     ("env.py", "*"): None,
-    ("bench.py", "*"): OTHER,
+    ("simulator.py", "*"): OTHER,  # the benchmark's rollout (tabx_bench/simulator.py)
 }
 
 # `TabxEnv._advance`, statement by the variable it assigns.
@@ -111,7 +114,7 @@ _SECTION = re.compile(r"^\s*#\s*(\d)\.\s")
 def _lookup(table: dict, frame: Frame) -> tuple[bool, str | None]:
     """(found, stage) of a frame in a table: its function first, then its file's default."""
     path = Path(frame.file)
-    if path.parent.name != "tabx":
+    if path.parent.name not in _PACKAGES:
         return False, None
     for key in ((path.name, frame.function), (path.name, "*")):
         if key in table:

@@ -39,9 +39,9 @@ from typing import Any, TextIO
 import jax
 import numpy as np
 
-from tabx.bench_cli import int_at_least, int_list
 from tabx.errors import UserError
 from tabx.files import atomic_write_text
+from tabx_bench.arguments import int_at_least, int_list
 from ued.config import ConfigError, TrainConfig, load_config
 from ued.experiment import learner_for
 from workers.learner import Learner

@@ -1,4 +1,12 @@
-"""XLA:CPU settings applied when `tabx` is imported, before JAX starts its backend.
+"""The XLA:CPU settings of the `tabx` command, for any process to apply before JAX starts its
+backend:
+
+    from tabx import xla_flags
+    xla_flags.apply()  # before the first JAX computation (XLA reads XLA_FLAGS then)
+    import jax
+
+Importing `tabx` applies nothing; the `tabx` command (`tabx_ued.cli.main`), the Ray actors
+(`workers.actors`), the profiler's child process and the test session call `apply()`.
 
 1. On jaxlib 0.10 the CPU compiler routes small reductions through its experimental YNN
    fusion, which is 1.5-2x slower for the (envs, units, units) reductions of this simulator
@@ -13,7 +21,7 @@
 
 Each flag is added to XLA_FLAGS only when the user has not set it, only for jaxlib versions
 known to accept it (an unknown XLA flag aborts the process), and never when
-TABX_KEEP_XLA_FLAGS=1. Nothing changes once JAX's backend exists.
+TABX_KEEP_XLA_FLAGS=1. Once JAX's backend exists, a change has no effect.
 """
 
 from __future__ import annotations
@@ -46,7 +54,8 @@ def usable_cores() -> int:
 
 
 def apply() -> bool:
-    """Add the flags allowed (see the module doc); return True if XLA_FLAGS was changed."""
+    """Add the flags allowed (see the module doc) to the XLA_FLAGS environment variable;
+    return True if it was changed."""
     if os.environ.get("TABX_KEEP_XLA_FLAGS") == "1" or not jaxlib_is_measured():
         return False
     flags = os.environ.get("XLA_FLAGS", "")
@@ -60,3 +69,6 @@ def apply() -> bool:
         return False
     os.environ["XLA_FLAGS"] = " ".join([flags, *added]).strip()
     return True
+
+
+__all__ = ["apply", "jaxlib_is_measured", "usable_cores"]

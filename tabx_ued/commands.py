@@ -1,0 +1,46 @@
+"""The `tabx` command table: every sub-command, and the module that owns it.
+
+    tabx scenarios list | show | validate | render               tabx_ued.scenarios
+    tabx rollout [NAME] [--ally RUN_DIR|CONTROLLER] ...          tabx_ued.rollout
+    tabx editor                                                  tabx_ued.editor
+    tabx bench env | profile | scale | reconfig | compare | train | ued      tabx_bench.cli
+    tabx buffer ...                                              level_buffer.cli
+    tabx levels sample                                           ued.levels_cli
+    tabx plot                                                    ued.plot
+    tabx train, tabx eval                                        tabx_ued.run_commands
+    tabx eval heuristics                                         tabx_ued.heuristics
+    tabx eval payoff                                             ued.payoff
+    tabx analyse value-error                                     ued.value_error
+    tabx runs status | buffer                                    tabx_ued.runs_commands
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from level_buffer import cli as buffer_cli
+from tabx_bench import cli as bench_cli
+from tabx_ued import editor, heuristics, rollout, run_commands, runs_commands, scenarios
+from ued import levels_cli, payoff, plot, value_error
+
+
+def add_commands(subparsers: argparse._SubParsersAction) -> None:
+    """Add every `tabx` sub-command (the registrar of `tabx_ued.cli.main`)."""
+    scenarios.add_parser(subparsers)
+    rollout.add_parser(subparsers)
+    bench_cli.add_parser(subparsers)
+    editor.add_parser(subparsers)
+    buffer_cli.add_parser(subparsers)
+    run_commands.add_parser(subparsers)
+    runs_commands.add_parser(subparsers)
+    levels_cli.add_parser(subparsers)
+    plot.add_parser(subparsers)
+    value_error.add_parser(subparsers)
+
+
+# `tabx eval WORD ...` routes beside `tabx eval RUN_DIR`.
+ROUTES = {("eval", "heuristics"): heuristics.add_route_parser,
+          ("eval", "payoff"): payoff.add_route_parser}
+
+
+__all__ = ["ROUTES", "add_commands"]
