@@ -45,7 +45,7 @@ from tabx_bench.arguments import int_at_least, int_list
 from ued.config import ConfigError, TrainConfig, load_config
 from ued.experiment import learner_for
 from workers.learner import Learner
-from workers.local import UEDRun
+from workers.ued_step import UEDRun
 
 DEFAULT_CONFIG = "ued/quickstart"  # a shipped config (ued.config_files)
 

@@ -25,8 +25,8 @@ from test_ued_train import ued_config
 from tabx_ued.cli import main
 from ued.checkpoint import Checkpoints
 from ued.run_folder import CHECKPOINT_DIR, LEVELS_DIR
-from workers.local import UEDRun
 from workers.train import train
+from workers.ued_step import UEDRun
 
 ROOT = Path(__file__).resolve().parents[1]
 TESTS = Path(__file__).resolve().parent
@@ -40,7 +40,7 @@ KILLED_RUN = textwrap.dedent("""
     sys.path.insert(0, {tests!r})
     from orbax.checkpoint._src.path import atomicity
     from test_ued_train import ued_config
-    from workers.local import UEDRun
+    from workers.ued_step import UEDRun
     from workers.train import train
 
     where, step = {where!r}, {step}

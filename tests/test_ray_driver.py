@@ -28,9 +28,9 @@ from ued.checkpoint import Checkpoints  # noqa: E402
 from ued.config import ConfigError  # noqa: E402
 from ued.run_folder import CHECKPOINT_DIR, LEVELS_DIR  # noqa: E402
 from workers.durable_service import LOG_NAME  # noqa: E402
-from workers.local import UEDRun  # noqa: E402
 from workers.ray_driver import RAY_NAMESPACE, RAY_RECORD  # noqa: E402
 from workers.train import train  # noqa: E402
+from workers.ued_step import UEDRun  # noqa: E402
 
 STEPS = 6
 

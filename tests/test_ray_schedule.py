@@ -18,9 +18,9 @@ from test_ued_train import ued_config
 
 from ued.curricula import Branch
 from workers.actors import ExplorerActor, LearnerActor, LevelServiceActor
-from workers.local import UEDRun
 from workers.ray_driver import AsyncRun, ExplorerPool, RemoteLearner, Workers
 from workers.ray_restarts import ActorDeaths, RemoteService
+from workers.ued_step import UEDRun
 
 
 class Ref:

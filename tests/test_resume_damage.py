@@ -19,9 +19,9 @@ from tabx_ued.cli import main
 from ued.checkpoint import Checkpoints
 from ued.config import ConfigError
 from ued.run_folder import CHECKPOINT_DIR, LEVELS_DIR
-from workers.local import UEDRun
 from workers.resume import SET_ASIDE_DIR
 from workers.train import train
+from workers.ued_step import UEDRun
 
 STEPS = 6
 CONFIG = {"run.checkpoint_every": 2, "run.keep_checkpoints": 3}

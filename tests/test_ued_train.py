@@ -22,8 +22,8 @@ from ued.curricula import ACCEL, PLR, SFL, Branch, DomainRandomization, make_cur
 from ued.run_folder import LEVELS_DIR
 from workers.learner import Learner
 from workers.level_service import snapshot_steps
-from workers.local import UEDRun
 from workers.train import train
+from workers.ued_step import UEDRun
 
 
 class Decisions:

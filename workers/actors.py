@@ -37,7 +37,7 @@ from workers.evaluator import Evaluator, SuiteResult
 from workers.explorer import Explorer
 from workers.learner import Learner
 from workers.level_service import to_device, to_host
-from workers.local import evaluators_for, level_service_for
+from workers.ued_step import evaluators_for, level_service_for
 
 # An actor's process is started by Ray, not by the `tabx` command: it applies the command's
 # XLA settings itself (one CPU device per usable core of its node), when Ray loads the actor

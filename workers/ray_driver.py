@@ -41,19 +41,18 @@ import time
 import uuid
 import warnings
 from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, TextIO, TypeVar
 
 import jax
 import numpy as np
 
-from level_buffer import Source
 from tabx.files import atomic_write_json
 from ued.config import ConfigError, RaySection, TrainConfig
 from ued.curricula import Branch
-from ued.progress import Progress, ThroughputClock, log_update
-from ued.run_folder import EVENTS_DIR, LEVELS_DIR, checkpoint_metadata, open_checkpoints
+from ued.run_folder import LEVELS_DIR
 from ued.tensorboard import SummaryWriter
 from workers.actors import (
     EvaluatorActor,
@@ -63,7 +62,6 @@ from workers.actors import (
     ParamsRef,
 )
 from workers.driver import Callback, Driver, RunStopped
-from workers.local import UEDRun, branch_text, level_summary
 from workers.ray_restarts import (
     MAX_CALL_FAILURES,
     ActorDeaths,
@@ -74,12 +72,15 @@ from workers.ray_restarts import (
     is_actor,
     wait_restarted,
 )
-from workers.resume import restore_intact
+from workers.training_loop import Output, Report, Runner, train_loop
+from workers.ued_step import LevelRequest, UEDRun, branch_text
 
 RAY_ENV = {"RAY_USAGE_STATS_ENABLED": "0"}
 RAY_RECORD = "ray.json"  # in the run folder: where the actors run, what was committed
 RAY_NAMESPACE = "tabx-ued"  # of the named actors of runs (`tabx runs buffer` finds them)
 RESTART_WAIT_S = 30.0  # for a call sent to a service that died to report its failure
+
+T = TypeVar("T")
 
 
 def import_ray() -> Any:
@@ -410,13 +411,11 @@ class Batch:
     """One curriculum step handed to an Explorer: what is needed to commit or re-issue it."""
 
     step: int
-    branch: Branch
+    request: LevelRequest  # the service call that made the levels, how they are filed
     levels: Any  # ObjectRef of the numpy levels
     key: jax.Array
     version: int
     explorer: int
-    parent_ids: np.ndarray | None = None
-    level_call: tuple[str, tuple] = ("fresh", ())  # the service call that made the levels
     levels_incarnation: int = 0  # of the service when it was asked for them
     issued_s: float = field(default_factory=time.perf_counter)
     rescored: int = 0
@@ -605,19 +604,30 @@ class AsyncRun:
         self.inflight[batch.explorer] += 1
         batch.incarnation = self.incarnation[batch.explorer]
 
-    def explore(self, step: int, branch: Branch, level_call: tuple[str, tuple], key: jax.Array,
-                parent_ids: np.ndarray | None = None) -> None:
-        """Issue step `step`: the service makes its levels (`level_call`: method, args), an
-        Explorer scores them; the driver holds only the refs."""
+    def explore(self, learner: RemoteLearner, step: int, request: LevelRequest,
+                key: jax.Array) -> tuple[None, None]:
+        """Issue step `step` (the schedule's `explore`): the service makes its levels
+        (`request`), an Explorer scores them; the driver holds only the refs. Committed when
+        the result arrives (`collect`)."""
         i = self._free_explorer()
-        batch = Batch(step, branch, None, key, self.learner.version, i, parent_ids, level_call)
+        batch = Batch(step, request, None, key, learner.version, i)
         self._ask_for_levels(batch)
         self.ledger[step] = "issued"
         self._submit(batch)
+        return None, None
+
+    def learn(self, step: int, train: Callable[[], T]) -> T:
+        """Step `step`'s learner part (the schedule's `learn`): now, committed when done."""
+        t0 = time.perf_counter()
+        out = train()
+        self.stats.learner_busy_s += time.perf_counter() - t0
+        self.stats.trained_steps += self.config.learner.steps_per_update
+        self.ledger[step] = "committed"
+        return out
 
     def _ask_for_levels(self, batch: Batch) -> None:
-        method, args = batch.level_call
-        batch.levels = getattr(self.workers.service, method).remote(*args)
+        request = batch.request
+        batch.levels = getattr(self.workers.service, request.method).remote(*request.args)
         batch.levels_incarnation = self.service.incarnation
 
     def _levels_lost(self, batch: Batch) -> bool:
@@ -704,9 +714,7 @@ class AsyncRun:
         self._submit(batch)
 
     def commit(self, batch: Batch, scores: np.ndarray, best: np.ndarray, lag: int) -> None:
-        source = Source.MUTATION if batch.branch == Branch.MUTATE else Source.RANDOM
-        parents = -1 if batch.parent_ids is None else batch.parent_ids
-        self.service.insert(batch.levels, scores, best, batch.version, source, parents)
+        self.run.commit(batch.request, batch.levels, scores, best, batch.version)
         self.ledger[batch.step] = "committed"
         self.stats.committed += 1
         self.stats.staleness[lag] += 1
@@ -720,34 +728,11 @@ class AsyncRun:
     # One step -----------------------------------------------------------------------------
 
     def step(self, step: int, key: jax.Array) -> tuple[Branch, dict[str, Any] | None, Any]:
-        """Decide and issue curriculum step `step`. Explorer batches return at once (metrics
-        None); learner batches wait for the update."""
-        run, learner = self.run, self.learner
-        n = self.config.learner.num_envs
-        keys = jax.random.split(key, 3)  # levels, rollout, edits (as UEDRun.step)
-        k_levels, k_roll, k_edit = keys
-        curriculum = run.curriculum
+        """Decide and issue curriculum step `step` (`UEDRun.step` on this schedule): Explorer
+        batches return at once (metrics and levels None); learner batches wait for the
+        update. Results that arrived meanwhile are committed first."""
         self.collect(block=False)
-        branch = run.next_branch()
-        replay_ids = None
-        metrics = levels = None
-        if not curriculum.learns(branch):
-            # Levels go from the service to an Explorer as a ref: the driver never holds them.
-            if branch == Branch.NEW:
-                self.explore(step, branch, ("fresh", (k_levels, n)), k_roll)
-            else:
-                parent_ids = np.asarray(curriculum.last_replay_ids, np.int64)
-                self.explore(step, branch, ("mutate_ids", (k_edit, parent_ids)), k_roll,
-                             parent_ids)
-        else:
-            t0 = time.perf_counter()
-            metrics, levels, replay_ids = run.learning_step(learner, branch, step, keys)
-            self.stats.learner_busy_s += time.perf_counter() - t0
-            self.stats.trained_steps += self.config.learner.steps_per_update
-            self.ledger[step] = "committed"
-            metrics = run.step_metrics(metrics, branch, True, learner.version)
-        curriculum.observe(branch, replay_ids)
-        return branch, metrics, levels
+        return self.run.step(self.learner, step, key, schedule=self)
 
 
 def driver_refs(ray: Any) -> int:
@@ -802,9 +787,9 @@ class RayDriver(Driver):
                           address=ray.get_runtime_context().gcs_address,
                           namespace=RAY_NAMESPACE,
                           actors={name: f"{run_name}/{name}" for name in workers.names()})
-            run_dir = self._train(ray, workers, config, run_dir, record, resume=resume,
-                                  max_updates=max_updates, progress=progress, stream=stream,
-                                  callback=callback)
+            run_dir = train_loop(RayRunner(ray, workers, config, record, stream), run_dir,
+                                 resume=resume, max_updates=max_updates, progress=progress,
+                                 stream=stream, callback=callback)
             record.update(status="finished")
             return run_dir
         except ray.exceptions.RayActorError as err:
@@ -829,140 +814,144 @@ class RayDriver(Driver):
             if started:
                 ray.shutdown()
 
-    def _train(self, ray: Any, workers: Workers, config: TrainConfig, run_dir: Path,
-               record: RunRecord, *,
-               resume: bool, max_updates: int | None, progress: bool, stream: TextIO,
-               callback: Callback | None) -> Path:
-        deaths = ActorDeaths(stream)  # logged even when quiet: a death is news
-        service = RemoteService(ray, workers.service, deaths)
-        explorers = workers.explorer_pool(ray, deaths)
-        evaluators = [RemoteEvaluator(ray, workers.evaluator, i, name, deaths)
+
+class RayRunner(Runner):
+    """A UED run over the actors of `workers`, in `train_loop`: the deterministic mode plays
+    each step as the local driver does (`UEDRun.step` over blocking calls), the asynchronous
+    one on `AsyncRun`'s schedule."""
+
+    snapshots = True
+    explores = True
+
+    def __init__(self, ray: Any, workers: Workers, config: TrainConfig, record: RunRecord,
+                 stream: TextIO):
+        super().__init__(config)
+        self.ray, self.workers, self.record, self.stream = ray, workers, record, stream
+        self.deaths = ActorDeaths(stream)  # logged even when quiet: a death is news
+        self.service = RemoteService(ray, workers.service, self.deaths)
+        evaluators = [RemoteEvaluator(ray, workers.evaluator, i, name, self.deaths)
                       for i, name in enumerate(config.ued.eval_suites)]
-        run = UEDRun(config, service, explorers, evaluators)
-        ppo = config.learner
-        total = ppo.num_updates
-        key = jax.random.key(config.seed)
-        key, k_init = jax.random.split(key)
-        ray.get(workers.learner.init.remote(k_init))
-        start, version = 0, 0
-        levels_dir = run_dir / LEVELS_DIR
-        checkpoints = open_checkpoints(run_dir, config)
-        restored = None
-        if resume:
-            template = ray.get(workers.learner.train_state.remote())
-            restored = restore_intact(run_dir, checkpoints, template, snapshots=True,
-                                      needs_buffer=service.buffer_size() is not None,
-                                      stream=stream)
-        if restored is not None:
-            checkpoints.reload()
-            train_state, key, start = restored
-            try:
-                version = run.load_state(service.load(str(levels_dir), start))
-            except (FileNotFoundError, ConfigError) as err:
-                raise ConfigError(f"{run_dir}: cannot resume from step {start}: {err}") from None
-            ray.get(workers.learner.set_train_state.remote(train_state, version))
-        learner = RemoteLearner(ray, workers.learner, version)
+        self.run = UEDRun(config, self.service, workers.explorer_pool(ray, self.deaths),
+                          evaluators)
+        self.deterministic = config.ray.deterministic
+        self.version, self.start = 0, 0
+        self.counts = {b: 0 for b in Branch}  # this session's steps per branch
+        self.metrics: dict[str, Any] = {}  # of the newest step that trained
+        self.levels: Any = None  # played by the newest step, None if it went to an Explorer
+        self.learner: RemoteLearner | None = None
+        self.asynchronous: AsyncRun | None = None
+        self.chaos: Chaos | None = None
+
+    @property
+    def eval_every(self) -> int:
+        return self.config.ued.eval_every if self.run.evaluators else 0
+
+    def needs_buffer(self) -> bool:
+        return self.service.buffer_size() is not None
+
+    def init(self, key: jax.Array) -> None:
+        self.ray.get(self.workers.learner.init.remote(key))
+
+    def template(self) -> Any:
+        return self.ray.get(self.workers.learner.train_state.remote())
+
+    def restore(self, run_dir: Path, train_state: Any, start: int) -> None:
+        self.version = self.run.resume(run_dir, start)
+        self.ray.get(self.workers.learner.set_train_state.remote(train_state, self.version))
+
+    def begin(self, start: int) -> None:
+        ray, workers, config = self.ray, self.workers, self.config
+        self.start = start
+        self.learner = RemoteLearner(ray, workers.learner, self.version)
         placement = workers.placement(ray)
-        deterministic = config.ray.deterministic
-        record.update(mode="deterministic" if deterministic else "asynchronous",
-                      learner_gpus=workers.gpus, placement=placement, steps=[start, start],
-                      total_steps=total)
-        asynchronous = None if deterministic else AsyncRun(ray, config, run, learner, workers,
-                                                           service, deaths)
-        chaos = Chaos(ray, config.ray, list(zip(workers.names(), workers.all(), strict=True)),
-                      stream)
+        self.record.update(mode="deterministic" if self.deterministic else "asynchronous",
+                           learner_gpus=workers.gpus, placement=placement, steps=[start, start],
+                           total_steps=config.learner.num_updates)
+        self.asynchronous = None if self.deterministic else AsyncRun(
+            ray, config, self.run, self.learner, workers, self.service, self.deaths)
+        self.chaos = Chaos(ray, config.ray, list(zip(workers.names(), workers.all(),
+                                                     strict=True)), self.stream)
 
-        def schedule_fields() -> dict[str, Any]:
-            """What `ray.json` says of the schedule so far (this session's branches)."""
-            fields = {"branches": {b.name.lower(): n for b, n in counts.items()},
-                      "restarts": dict(sorted(deaths.count.items()))}
-            return {**fields, **(asynchronous.record() if asynchronous else {})}
-        stop = total if max_updates is None else min(total, start + max_updates)
-        bar = Progress(total, stream) if progress else None
-        if progress:
-            mode = "deterministic" if deterministic else "asynchronous"
-            what = "resuming" if resume else "training"
-            stream.write(f"{what} {config.ued.method} + {config.algorithm} on Ray ({mode}, "
-                         f"{len(workers.explorers)} explorers, learner "
-                         f"{'GPU' if workers.gpus else 'CPU'}) in {run_dir}; {total} steps of "
-                         f"{ppo.steps_per_update:,} env steps"
-                         f"{f', from step {start}' if start else ''}\n")
-            stream.flush()
-        writer = SummaryWriter(run_dir / EVENTS_DIR)
-        counts = {b: 0 for b in Branch}
-        logged_metrics: dict[str, Any] = {}
-        try:
-            clock = ThroughputClock(start, ppo.steps_per_update)
-            trained = 0  # steps of this call that train the policy (the clock's split)
-            for step in range(start, stop):
-                key, k_step = jax.random.split(key)
-                if asynchronous is None:
-                    branch, metrics, levels = run.step(learner, step, k_step)
-                else:
-                    branch, metrics, levels = asynchronous.step(step, k_step)
-                counts[branch] += 1
-                run.branch_counts[branch] += 1
-                trained += run.curriculum.learns(branch)
-                done = step + 1
-                last = done == stop
-                chaos.after_step(done, last)
-                if metrics is not None:
-                    logged_metrics = metrics
-                checkpoint_due = done % config.run.checkpoint_every == 0 or last
-                if asynchronous is not None and checkpoint_due:
-                    asynchronous.drain()  # a snapshot holds every issued batch's result
-                if clock.first_pending or done % config.run.log_every == 0 or last:
-                    values = dict(jax.device_get(logged_metrics))
-                    timing, rate = clock.read(done, trained)
-                    values.update(timing)
-                    values.update(service.stats())
-                    if levels is not None:
-                        values.update(level_summary(levels))
-                    if run.sfl_scoring_steps:
-                        values["sfl/scoring_env_steps"] = float(run.sfl_scoring_steps)
-                    buffer_size = service.buffer_size()  # one call to the service per log
-                    extra = branch_text(run.branch_counts, buffer_size)
-                    values["ray/driver_refs"] = float(driver_refs(ray))
-                    if asynchronous is not None:
-                        values.update(asynchronous.stats.scalars(
-                            len(workers.explorers), len(asynchronous.pending)))
-                        extra = asynchronous.stats.text(len(workers.explorers), buffer_size)
-                    log_update(writer, bar, None, done, None, values, ppo.steps_per_update,
-                               rate, total, last, extra=extra,
-                               eta_steps_per_s=clock.eta_steps_per_s)
-                    record.update(steps=[start, done], env_steps_per_s=rate,
-                                  buffer_size=buffer_size, **schedule_fields())
-                    if callback is not None:
-                        callback(done, learner.train_state, {k: float(v)
-                                                             for k, v in values.items()})
-                if run.evaluators and (done % config.ued.eval_every == 0 or last):
-                    if asynchronous is None:
-                        run.evaluate(learner, writer, done, stream if progress else None)
-                    else:
-                        asynchronous.submit_evaluation(done)
-                if asynchronous is not None:
-                    asynchronous.log_evaluations(writer, stream if progress else None)
-                if checkpoint_due:
-                    service.save(str(levels_dir), done, run.state(learner),
-                                 config.run.keep_checkpoints)
-                    checkpoints.save(done, learner.train_state, key,
-                                     checkpoint_metadata(config, done, learner.version))
-            if asynchronous is not None:
-                asynchronous.drain()
-                asynchronous.log_evaluations(writer, stream if progress else None, block=True)
-            try:  # where the actors ended (a restarted one may have moved)
-                for name, actor in zip(workers.names(), workers.all(), strict=True):
-                    if name.startswith("explorer") or name == "evaluator":
-                        wait_restarted(ray, actor, name, timeout_s=60)
-                placement_end = workers.placement(ray)
-            except (ray.exceptions.RayActorError, RunStopped):
-                placement_end = None
-            record.update(placement_end=placement_end, steps=[start, stop],
-                          chaos_kills=chaos.kills, **schedule_fields())
-        finally:
-            writer.close()
-            checkpoints.close()
-        return run_dir
+    def headline(self, run_dir: Path, start: int) -> str:
+        config, workers = self.config, self.workers
+        mode = "deterministic" if self.deterministic else "asynchronous"
+        return (f"{config.ued.method} + {config.algorithm} on Ray ({mode}, "
+                f"{len(workers.explorers)} explorers, learner "
+                f"{'GPU' if workers.gpus else 'CPU'}) in {run_dir}; "
+                f"{config.learner.num_updates} steps of {config.learner.steps_per_update:,} "
+                f"env steps{f', from step {start}' if start else ''}")
+
+    def schedule_fields(self) -> dict[str, Any]:
+        """What `ray.json` says of the schedule so far (this session's branches)."""
+        fields = {"branches": {b.name.lower(): n for b, n in self.counts.items()},
+                  "restarts": dict(sorted(self.deaths.count.items()))}
+        return {**fields, **(self.asynchronous.record() if self.asynchronous else {})}
+
+    def step(self, index: int, key: jax.Array, *, last: bool, checkpoint_due: bool) -> bool:
+        asynchronous = self.asynchronous
+        if asynchronous is None:
+            branch, metrics, self.levels = self.run.step(self.learner, index, key)
+        else:
+            branch, metrics, self.levels = asynchronous.step(index, key)
+        self.counts[branch] += 1
+        self.run.branch_counts[branch] += 1
+        self.chaos.after_step(index + 1, last)
+        if metrics is not None:
+            self.metrics = metrics
+        if asynchronous is not None and checkpoint_due:
+            asynchronous.drain()  # a snapshot holds every issued batch's result
+        return self.run.curriculum.learns(branch)
+
+    def host_metrics(self) -> dict[str, Any]:
+        return dict(jax.device_get(self.metrics))
+
+    def log(self, values: dict[str, Any], report: Report) -> None:
+        run, asynchronous = self.run, self.asynchronous
+        values.update(report.timing)
+        values.update(run.logged_metrics(self.levels))
+        buffer_size = self.service.buffer_size()  # one call to the service per log
+        extra = branch_text(run.branch_counts, buffer_size)
+        values["ray/driver_refs"] = float(driver_refs(self.ray))
+        if asynchronous is not None:
+            values.update(asynchronous.stats.scalars(len(self.workers.explorers),
+                                                     len(asynchronous.pending)))
+            extra = asynchronous.stats.text(len(self.workers.explorers), buffer_size)
+        report.show(values, None, extra=extra, callback=False)
+        self.record.update(steps=[self.start, report.done], env_steps_per_s=report.rate,
+                           buffer_size=buffer_size, **self.schedule_fields())
+        callback = report.output.callback
+        if callback is not None:
+            callback(report.done, self.learner.train_state,
+                     {k: float(v) for k, v in values.items()})
+
+    def evaluate(self, done: int, due: bool, output: Output) -> None:
+        if due:
+            if self.asynchronous is None:
+                self.run.evaluate(self.learner, output.writer, done, output.notes)
+            else:
+                self.asynchronous.submit_evaluation(done)
+        if self.asynchronous is not None:
+            self.asynchronous.log_evaluations(output.writer, output.notes)
+
+    def checkpoint(self, done: int, run_dir: Path) -> tuple[Any, int]:
+        self.run.save(run_dir, done, self.learner)
+        return self.learner.train_state, self.learner.version
+
+    def finish(self, stop: int, output: Output) -> None:
+        ray, workers = self.ray, self.workers
+        if self.asynchronous is not None:
+            self.asynchronous.drain()
+            self.asynchronous.log_evaluations(output.writer, output.notes, block=True)
+        try:  # where the actors ended (a restarted one may have moved)
+            for name, actor in zip(workers.names(), workers.all(), strict=True):
+                if name.startswith("explorer") or name == "evaluator":
+                    wait_restarted(ray, actor, name, timeout_s=60)
+            placement_end = workers.placement(ray)
+        except (ray.exceptions.RayActorError, RunStopped):
+            placement_end = None
+        self.record.update(placement_end=placement_end, steps=[self.start, stop],
+                           chaos_kills=self.chaos.kills, **self.schedule_fields())
 
 
-__all__ = ["RAY_NAMESPACE", "RAY_RECORD", "RayDriver", "RunRecord", "connect", "import_ray"]
+__all__ = ["RAY_NAMESPACE", "RAY_RECORD", "RayDriver", "RayRunner", "RunRecord", "connect",
+           "import_ray"]

@@ -1,0 +1,218 @@
+"""The training loop every run goes through, whatever it trains and wherever its steps run.
+
+`train_loop(runner, run_dir, ...)` owns what all runs share:
+
+    key, k_init = split(key of the seed)       the key chain, and the train state from k_init
+    open the checkpoints; with --resume, restore the newest intact step (workers.resume)
+    "training ... in RUN_DIR" (or "resuming ..."), the progress line, the TensorBoard writers
+    for each step:  key, k = split(key); step(k)
+                    log when due (the first step, every run.log_every, the last), timed by a
+                        ThroughputClock read after the step's metrics reached the host
+                    evaluate when due (every runner.eval_every, the last)
+                    checkpoint when due (every run.checkpoint_every, the last)
+    finally: close the writers and the checkpoints
+
+A `Runner` says what differs: what the train state is and where it lives, what one step does,
+what is logged, what is saved beside a checkpoint. The runners are a plain MARL run and a
+multi-seed one (`workers.local`), a UED run in this process (`workers.local`) and a UED run
+over Ray actors (`workers.ray_driver`). A checkpoint stores the train state and the key after
+a step, so a resumed run continues the key chain of an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TextIO
+
+import jax
+
+from ued.config import TrainConfig
+from ued.progress import Progress, ThroughputClock, log_update
+from ued.run_folder import EVENTS_DIR, checkpoint_metadata, open_checkpoints
+from ued.tensorboard import SummaryWriter
+from workers.driver import Callback
+from workers.resume import restore_intact
+
+
+@dataclass
+class Output:
+    """Where a run reports: its TensorBoard writers (one, or one per seed of a multi-seed
+    run), the progress line (None: quiet), the caller's callback and the stream for notes
+    such as evaluation results (None: quiet)."""
+
+    writers: list[SummaryWriter]
+    bar: Progress | None
+    callback: Callback | None
+    notes: TextIO | None
+
+    @property
+    def writer(self) -> SummaryWriter:
+        return self.writers[0]
+
+
+@dataclass(frozen=True)
+class Report:
+    """A logged step, as the loop hands it to `Runner.log`: the step count, the clock's
+    reading (`timing` metrics, env steps/s, the ETA's rate) and where to report."""
+
+    done: int  # steps done
+    last: bool  # the last step of this call
+    timing: dict[str, float]
+    rate: float  # env steps/s since the previous logged step (NaN on the first)
+    eta_steps_per_s: float
+    total: int  # steps of the whole run
+    env_steps: int  # env steps of one step (all seeds)
+    output: Output
+
+    def show(self, metrics: dict[str, Any], train_state: Any, *, extra: str = "",
+             writer: bool = True, callback: bool = True) -> None:
+        """Log `metrics` (host values): TensorBoard (unless `writer` is False: the runner
+        writes them), the progress line with `extra`, the callback (unless `callback` is
+        False: the runner calls it)."""
+        out = self.output
+        log_update(out.writer if writer else None, out.bar, out.callback if callback else None,
+                   self.done, train_state, metrics, self.env_steps, self.rate, self.total,
+                   self.last, extra=extra, eta_steps_per_s=self.eta_steps_per_s)
+
+
+class Runner(abc.ABC):
+    """What one kind of run does inside `train_loop` (see the module doc)."""
+
+    snapshots = False  # whether a checkpoint comes with a level snapshot (a UED run)
+    explores = False  # whether some steps only score levels: the clock splits the rate
+
+    def __init__(self, config: TrainConfig):
+        self.config = config
+
+    @property
+    def env_steps(self) -> int:
+        """Env steps of one step, as the clock and the progress line count them."""
+        return self.config.learner.steps_per_update
+
+    @property
+    def eval_every(self) -> int:
+        """Steps between evaluations (and after the last); 0: none."""
+        return 0
+
+    def first_key(self) -> jax.Array:
+        """The start of the key chain."""
+        return jax.random.key(self.config.seed)
+
+    def split_key(self, key: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """(the chain's next key, a key to use now)."""
+        key, use = jax.random.split(key)
+        return key, use
+
+    def event_dirs(self, run_dir: Path) -> list[Path]:
+        """The folders of the TensorBoard writers."""
+        return [run_dir / EVENTS_DIR]
+
+    def needs_buffer(self) -> bool:
+        """Whether a resumable step needs a level buffer in its snapshot."""
+        return False
+
+    @abc.abstractmethod
+    def init(self, key: jax.Array) -> None:
+        """Initialise the train state from `key`."""
+
+    @abc.abstractmethod
+    def template(self) -> Any:
+        """A train state shaped as the checkpoints' (to restore into)."""
+
+    @abc.abstractmethod
+    def restore(self, run_dir: Path, train_state: Any, start: int) -> None:
+        """Continue from the checkpoint of step `start`, whose train state is `train_state`."""
+
+    def begin(self, start: int) -> None:
+        """Before the first step of this call, restored or not (`start`: the first step)."""
+        return None
+
+    @abc.abstractmethod
+    def headline(self, run_dir: Path, start: int) -> str:
+        """What trains on what, and for how long: the line after "training " or "resuming "."""
+
+    @abc.abstractmethod
+    def step(self, index: int, key: jax.Array, *, last: bool, checkpoint_due: bool) -> bool:
+        """Run step `index` with `key`; whether it trained the policy."""
+
+    @abc.abstractmethod
+    def host_metrics(self) -> dict[str, Any]:
+        """The newest step's metrics on the host (waits for the step)."""
+
+    @abc.abstractmethod
+    def log(self, metrics: dict[str, Any], report: Report) -> None:
+        """Log a step: `metrics` from `host_metrics`, timing in `report`."""
+
+    def evaluate(self, done: int, due: bool, output: Output) -> None:
+        """After every step: evaluate when `due`; log evaluations that finished."""
+        return None
+
+    @abc.abstractmethod
+    def checkpoint(self, done: int, run_dir: Path) -> tuple[Any, int]:
+        """Before the checkpoint of step `done`: write what it needs beside it; returns the
+        train state it stores and the policy version."""
+
+    def finish(self, stop: int, output: Output) -> None:
+        """After the last step of this call (not after an error)."""
+        return None
+
+
+def train_loop(runner: Runner, run_dir: Path, *, resume: bool, max_updates: int | None,
+               progress: bool, stream: TextIO, callback: Callback | None) -> Path:
+    """Run (or, with `resume`, continue) `runner`'s run in `run_dir`; `max_updates` stops
+    after that many steps in this call; `progress` writes the progress line and notes to
+    `stream`; `callback(step, train_state, metrics)` runs after every logged step."""
+    config = runner.config
+    key, k_init = runner.split_key(runner.first_key())
+    runner.init(k_init)
+    start = 0
+    checkpoints = open_checkpoints(run_dir, config)
+    restored = (restore_intact(run_dir, checkpoints, runner.template(),
+                               snapshots=runner.snapshots, needs_buffer=runner.needs_buffer(),
+                               stream=stream, key_template=key)
+                if resume else None)
+    if restored is not None:
+        checkpoints.reload()
+        train_state, key, start = restored
+        runner.restore(run_dir, train_state, start)
+    runner.begin(start)
+    total = config.learner.num_updates
+    stop = total if max_updates is None else min(total, start + max_updates)
+    bar = Progress(total, stream) if progress else None
+    if progress:
+        stream.write(f"{'resuming' if resume else 'training'} {runner.headline(run_dir, start)}\n")
+        stream.flush()
+
+    output = Output([SummaryWriter(path) for path in runner.event_dirs(run_dir)], bar, callback,
+                    stream if progress else None)
+    try:
+        clock = ThroughputClock(start, runner.env_steps)
+        trained = 0  # steps of this call that trained the policy (the clock's split)
+        for index in range(start, stop):
+            key, k_step = runner.split_key(key)
+            done = index + 1
+            last = done == stop
+            checkpoint_due = done % config.run.checkpoint_every == 0 or last
+            trained += runner.step(index, k_step, last=last, checkpoint_due=checkpoint_due)
+            if clock.first_pending or done % config.run.log_every == 0 or last:
+                metrics = runner.host_metrics()  # waits for the step: then read the clock
+                timing, rate = clock.read(done, trained if runner.explores else None)
+                runner.log(metrics, Report(done, last, timing, rate, clock.eta_steps_per_s,
+                                           total, runner.env_steps, output))
+            every = runner.eval_every
+            runner.evaluate(done, bool(every) and (done % every == 0 or last), output)
+            if checkpoint_due:
+                train_state, version = runner.checkpoint(done, run_dir)
+                checkpoints.save(done, train_state, key,
+                                 checkpoint_metadata(config, done, version))
+        runner.finish(stop, output)
+    finally:
+        for writer in output.writers:
+            writer.close()
+        checkpoints.close()
+    return run_dir
+
+
+__all__ = ["Output", "Report", "Runner", "train_loop"]
