@@ -29,6 +29,9 @@ from tabx.rng import random_words, to_unit_float
 from tabx.state import EnvState
 
 CONTROLLER_KINDS = ("external", "heuristic", "random", "idle")
+# The scripted kinds, numbered: a team whose kind is data per env (`KindPerEnv`) gives each env
+# its kind as an index into this tuple.
+SCRIPTED_KINDS = ("heuristic", "random", "idle")
 
 
 @dataclass(frozen=True)
@@ -71,6 +74,14 @@ class Controller:
 
     def __str__(self) -> str:
         return self.kind if self.tier is None else f"{self.kind}:{self.tier}"
+
+
+@dataclass(frozen=True)
+class KindPerEnv:
+    """A scripted team whose kind is data, one `SCRIPTED_KINDS` index per env (an evaluation
+    suite plays many opponents in one batch). Only the kinds in `used` are computed."""
+
+    used: tuple[str, ...]
 
 
 def with_tiers(params: EnvParams, controllers: Sequence[Controller]) -> EnvParams:
@@ -132,5 +143,25 @@ def controlled_actions_from_words(words: jax.Array, state: EnvState, params: Env
     return jnp.where(team == C.ALLY, by_kind[kinds[0]], by_kind[kinds[1]]), state
 
 
-__all__ = ["CONTROLLER_KINDS", "Controller", "controlled_actions", "controlled_actions_from_words",
-           "controller_words", "with_tiers"]
+def scripted_actions_by_kind(key: jax.Array, state: EnvState, params: EnvParams, kind: jax.Array,
+                             used: Sequence[str]) -> tuple[jax.Array, EnvState]:
+    """(actions (N,) for every unit slot, state with the heuristic's memory where it plays) of
+    one env whose scripted kind is `kind` (a `SCRIPTED_KINDS` index), with the randomness of
+    `controlled_actions`. Only the kinds in `used` are computed."""
+    n = params.units.team.shape[0]
+    bits = random_words(key, (2, n))
+    actions = jnp.full((n,), C.IDLE, jnp.int32)
+    if "heuristic" in used:
+        heuristic, after = heuristic_actions_from_bits(bits[0], state, params)
+        is_heuristic = kind == SCRIPTED_KINDS.index("heuristic")
+        actions = jnp.where(is_heuristic, heuristic, actions)
+        state = jax.tree.map(lambda a, b: jnp.where(is_heuristic, a, b), after, state)
+    if "random" in used:
+        random = pick_legal(to_unit_float(bits[1]), action_mask(state, params))
+        actions = jnp.where(kind == SCRIPTED_KINDS.index("random"), random, actions)
+    return actions.astype(jnp.int32), state
+
+
+__all__ = ["CONTROLLER_KINDS", "SCRIPTED_KINDS", "Controller", "KindPerEnv", "controlled_actions",
+           "controlled_actions_from_words", "controller_words", "scripted_actions_by_kind",
+           "with_tiers"]

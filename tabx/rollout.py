@@ -1,11 +1,12 @@
-"""One episode of one level, played by a *side* per team, as a single jitted `lax.scan`.
+"""One episode of one level, played by a *side* per team, in one jitted program.
 
 A side is a controller (tabx.controllers: random, idle, heuristic (the level's own parameters)
 or heuristic:TIER) or a trained policy, which a layer above hands in as a
-`tabx.policy_team.PolicyTeam`. A finished episode is frozen, so the scan can run the full
-horizon; `summarise` reports when and how it ended, the winner, and each team's remaining
-units and health; `write_gif` and `render_gif` draw every step. The `tabx rollout` command
-(tabx_ued.rollout) plays through here.
+`tabx.policy_team.PolicyTeam`. The episode is the episode player's (`tabx.episodes.play`, a
+batch of one); a finished episode is frozen, so the scan can run the full horizon. `summarise`
+reports when and how it ended, the winner, and each team's remaining units and health;
+`write_gif` and `render_gif` draw every step. The `tabx rollout` command (tabx_ued.rollout)
+plays through here.
 """
 
 from __future__ import annotations
@@ -16,8 +17,9 @@ import jax
 import jax.numpy as jnp
 
 from tabx import constants as C
-from tabx.controllers import Controller, controlled_actions, with_tiers
+from tabx.controllers import Controller, with_tiers
 from tabx.env import TabxEnv
+from tabx.episodes import EPISODE_KEYS, play
 from tabx.jit_options import learner_jit, simulator_jit
 from tabx.params import EnvConfig, EnvParams
 from tabx.policy_team import PolicyTeam
@@ -37,18 +39,14 @@ def play_episode(config: EnvConfig, level: EnvParams, steps: int, seed: int,
     controllers' tiers (`with_tiers`)."""
     if any(isinstance(c, Controller) and c.kind == "external" for c in controllers):
         raise ValueError("a rollout needs a controller for both teams (not external)")
-    policies = tuple(c if isinstance(c, PolicyTeam) else None for c in controllers)
-    scripted = tuple(Controller("external") if p is not None else c
-                     for c, p in zip(controllers, policies, strict=True))
-    # The program sees what each policy computes (its functions and slots); its parameters
-    # are an argument.
-    networks = tuple(None if p is None else (p.act, p.initial_hidden, p.slots)
-                     for p in policies)
-    params = tuple(None if p is None else p.params for p in policies)
-    dtypes = {p.matmul_dtype for p in policies if p is not None}
+    teams = tuple(c if isinstance(c, PolicyTeam) else None for c in controllers)
+    # The program sees what each policy computes (`Policy`); its parameters are an argument.
+    policies = tuple(None if t is None else t.policy for t in teams)
+    params = tuple(None if t is None else t.params for t in teams)
+    dtypes = {t.matmul_dtype for t in teams if t is not None}
     compiled = _play(None if not dtypes else "bfloat16" if "bfloat16" in dtypes else "float32")
-    return compiled(env_for(config), level, jax.random.key(seed), steps, scripted, trajectory,
-                    networks, params)
+    return compiled(env_for(config), level, jax.random.key(seed), steps,
+                    scripted_controllers(controllers), trajectory, policies, params)
 
 
 @functools.lru_cache(maxsize=16)
@@ -59,44 +57,19 @@ def env_for(config: EnvConfig) -> TabxEnv:
 
 def episode(env: TabxEnv, level: EnvParams, key: jax.Array, steps: int,
             controllers: tuple[Controller, Controller], trajectory: bool = False,
-            networks: tuple = (None, None), params: tuple = (None, None)):
-    """The traceable body of `play_episode` (one env; vmap it for a batch of episodes). A team
-    with a network (`(act, initial_hidden, slots)` of a `PolicyTeam`, its controller
-    external) acts with `act` on `params`, its recurrent state carried over the episode."""
-    obs, state = env.reset(key, level)
-    playing = [team for team in range(C.NUM_TEAMS) if networks[team] is not None]
-
-    def policy_actions(key, obs, state, hidden):
-        if not playing:
-            return None, hidden
-        mask = env.action_mask(state, level)
-        external = jnp.zeros((env.config.num_units,), jnp.int32)
-        hidden = list(hidden)
-        for team in playing:
-            act, _, slots = networks[team]
-            # Keys of their own, so that the scripted team's draws are those of a rollout
-            # without a policy.
-            acts, hidden[team] = act(params[team], obs, mask, hidden[team],
-                                     jax.random.fold_in(key, 1 + team))
-            external = external.at[slice(*slots)].set(acts)
-        return external, tuple(hidden)
-
-    def body(carry, key):
-        obs, state, hidden, total, ended_at = carry
-        was_done = state.done
-        external, hidden = policy_actions(key, obs, state, hidden)
-        actions, state = controlled_actions(key, state, level, external, controllers)
-        obs, state, reward, done, info = env.step(key, state, actions, level)
-        ended_at = jnp.where(done & ~was_done, state.step, ended_at)
-        out = (state, {k: info[k] for k in ("attacking", "hit")}) if trajectory else None
-        # Observations are carried only for a policy (scripted teams do without them).
-        return (obs if playing else None, state, hidden, total + reward, ended_at), out
-
-    hidden = tuple(None if n is None else n[1]() for n in networks)
-    init = (obs if playing else None, state, hidden, jnp.zeros(C.NUM_TEAMS),
-            jnp.zeros((), jnp.int32))
-    (_, state, _, total, ended_at), frames = jax.lax.scan(body, init,
-                                                          jax.random.split(key, steps))
+            policies: tuple = (None, None), params: tuple = (None, None)):
+    """The traceable body of `play_episode`: one episode of `level` (no batch axis) through
+    the episode player (`tabx.episodes.play`, a batch of one). A team with a `Policy` (its
+    controller external) acts with it on `params`, its recurrent state carried over the
+    episode."""
+    record = ((lambda states, info, levels: (states, {k: info[k] for k in ("attacking", "hit")}))
+              if trajectory else None)
+    out = play(env, jax.tree.map(lambda x: x[None], level), key[None], steps, controllers,
+               policies, params, keys=EPISODE_KEYS, record=record)
+    state, total, length = jax.tree.map(lambda x: x[0], (out.states, out.returns, out.length))
+    # The episode ended at the step it was done after: the steps it played.
+    ended_at = jnp.where(state.done, length, 0)
+    frames = None if out.record is None else jax.tree.map(lambda x: x[:, 0], out.record)
     return state, total, ended_at, frames
 
 

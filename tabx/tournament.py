@@ -4,8 +4,8 @@ tabx_ued.heuristics).
 Row tier plays the allies, column tier the enemies, both with the scripted policy; each cell is
 `episodes` full episodes on the scenario. The tiers and the behaviour profile are data in the
 level, so the whole table runs through one compiled function: each row is one batch of
-(columns x episodes) envs stepped until every episode has ended (a `lax.while_loop`, so short
-battles finish early).
+(columns x episodes) envs stepped until every episode has ended (the episode player,
+`tabx.episodes.play`, with `until_done`, so short battles finish early).
 
 Per matchup: the allies' win rate with a 95 % Wilson interval, the fraction of time-outs, the
 mean episode length, the mean team health ratios at the end (the level's formula), the mean
@@ -28,8 +28,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from tabx import constants as C
-from tabx.controllers import Controller, controlled_actions
+from tabx.controllers import Controller
 from tabx.env import TabxEnv
+from tabx.episodes import LOOP_KEYS, play
 from tabx.intervals import wilson
 from tabx.jit_options import simulator_jit
 from tabx.params import HEURISTIC_TIERS, EnvConfig, EnvParams, heuristic_params, stack_levels
@@ -102,47 +103,37 @@ class TierTable:
 @functools.lru_cache(maxsize=8)
 def make_batch_runner(config: EnvConfig):
     """A jitted `run(levels, keys) -> dict of per-episode OUTCOMES` over a batch of envs, each
-    playing one episode with the heuristic on both teams until all have ended."""
+    playing one episode with the heuristic on both teams until all have ended (the episode
+    player, `tabx.episodes.play`, with `until_done`)."""
     env = TabxEnv(config)
-
-    def act(key, state, level):
-        actions, state = controlled_actions(key, state, level, None, BOTH_HEURISTIC)
-        _, state, reward, _, _ = env.step(key, state, actions, level)
-        return state, reward
 
     def dead_per_team(states, levels):
         u = levels.units
         dead = u.active & ~states.alive  # (B, N)
         return jnp.stack([jnp.sum(dead & (u.team == t), -1) for t in range(C.NUM_TEAMS)], -1)
 
+    def first_death(tracked, states, levels):
+        """(step of the first death (0: none yet), (B, 2) whose it was), updated after a step."""
+        step, whose = tracked
+        dead = dead_per_team(states, levels) > 0  # (B, 2)
+        new = (step == 0) & jnp.any(dead, -1)
+        return jnp.where(new, states.step, step), jnp.where(new[:, None], dead, whose)
+
     def run(levels: EnvParams, keys: jax.Array):
-        states = jax.vmap(env.initial_state)(levels)
         batch = keys.shape[0]
-
-        def cond(carry):
-            states, t = carry[0], carry[-1]
-            return jnp.any(~states.done) & (t < config.max_steps)
-
-        def body(carry):
-            states, total, first_death, first_dead, key, t = carry
-            key, sub = jax.random.split(key)
-            states, reward = jax.vmap(act)(jax.random.split(sub, batch), states, levels)
-            dead = dead_per_team(states, levels) > 0  # (B, 2)
-            new = (first_death == 0) & jnp.any(dead, -1)
-            first_death = jnp.where(new, states.step, first_death)
-            first_dead = jnp.where(new[:, None], dead, first_dead)
-            return states, total + reward[:, C.ALLY], first_death, first_dead, key, t + 1
-
-        init = (states, jnp.zeros(batch), jnp.zeros(batch, jnp.int32),
-                jnp.zeros((batch, C.NUM_TEAMS), bool), keys[0], jnp.zeros((), jnp.int32))
-        states, total, first_death, first_dead, _, _ = jax.lax.while_loop(cond, body, init)
+        tracked = (jnp.zeros(batch, jnp.int32), jnp.zeros((batch, C.NUM_TEAMS), bool))
+        out = play(env, levels, keys[0], config.max_steps, BOTH_HEURISTIC, keys=LOOP_KEYS,
+                   start=jax.vmap(env.initial_state)(levels), until_done=True,
+                   track=(tracked, first_death))
+        states, (death_step, first_dead) = out.states, out.tracked
         members = jnp.stack([jnp.sum(levels.units.active & (levels.units.team == t), -1)
                              for t in range(C.NUM_TEAMS)], -1)
         eliminated = dead_per_team(states, levels) >= members
         timeout = states.done & ~jnp.any(eliminated, -1)
-        return dict(ally_won=states.won[:, C.ALLY], length=states.step, ally_return=total,
-                    timeout=timeout, hp_ratio=states.hp_ratio, first_death=first_death,
-                    first_dead=first_dead, eliminated=eliminated)
+        return dict(ally_won=states.won[:, C.ALLY], length=states.step,
+                    ally_return=out.returns[:, C.ALLY], timeout=timeout,
+                    hp_ratio=states.hp_ratio, first_death=death_step, first_dead=first_dead,
+                    eliminated=eliminated)
 
     return simulator_jit(run)
 

@@ -7,7 +7,7 @@ policy plays the EnvConfig it was trained on (the scenario is padded into it), t
 trained for or, through the team swap, the other one when that has as many slots; the scenario
 defaults to its first training scenario, and the team nobody names to its training opponent.
 
-The episode is `tabx.rollout.play_episode` (one jitted `lax.scan`); the summary reports when and
+The episode is `tabx.rollout.play_episode` (one jitted program); the summary reports when and
 how it ended, the winner, and each team's remaining units and health. `--gif out.gif` renders
 every step.
 """

@@ -1,10 +1,11 @@
 """`tabx eval`: play trained policies against the heuristic, random, idle or each other.
 
 Each team is played by a *side*: a trained policy (a run folder: its config and newest
-checkpoint) or a controller (`heuristic[:TIER]`, `random`, `idle`). Episodes run in parallel,
-one env per episode, for the episode limit of the policies' EnvConfig (a finished episode is
-frozen, so the scan simply runs to the limit). Policies act with their recurrent state carried
-over the episode, sampling from the masked policy (or its argmax with `greedy`).
+checkpoint) or a controller (`heuristic[:TIER]`, `random`, `idle`). Episodes run in parallel
+through the episode player (`tabx.episodes.play`), one env per episode, for the episode limit
+of the policies' EnvConfig (a finished episode is frozen, so the scan simply runs to the
+limit). Policies act with their recurrent state carried over the episode, sampling from the
+masked policy (or its argmax with `greedy`).
 
 A policy only plays levels of the EnvConfig it was trained on (its observation size is fixed):
 the scenario is padded into that config, and two policies must share one. Observations are
@@ -36,8 +37,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from tabx import constants as C
-from tabx.controllers import Controller, controlled_actions, with_tiers
+from tabx.controllers import Controller, with_tiers
 from tabx.env import TabxEnv
+from tabx.episodes import EVAL_KEYS, Policy, sample
+from tabx.episodes import play as play_episodes
 from tabx.intervals import mean_ci, wilson
 from tabx.jit_options import learner_jit
 from tabx.params import EnvConfig, EnvParams, repeat_level
@@ -104,29 +107,33 @@ def seat(policy: TrainedPolicy, team: int, env_config: EnvConfig) -> tuple[int, 
     return first, end
 
 
-def _policy_actions(learner: PPOLearner, params: Any, obs: jax.Array, mask: jax.Array,
-                    hidden: Any, key: jax.Array, greedy: bool, slots: tuple[int, int]
-                    ) -> tuple[jax.Array, Any]:
-    """The actions of a policy (its learner and parameters) on the unit `slots` it plays."""
+@functools.lru_cache(maxsize=64)
+def learner_policy(learner: PPOLearner, slots: tuple[int, int], greedy: bool = False) -> Policy:
+    """The policy of `learner`'s networks on unit `slots` as the episode player takes it
+    (`tabx.episodes.Policy`): it samples from the masked policy (`greedy`: its argmax) with its
+    recurrent state carried over the episode. One object per learner (process-cached), seat
+    and mode, so that programs of runs of one config share their compilation."""
     take = slice(*slots)
-    x = learner.agent_inputs(obs[:, take])
-    hidden, logits = learner.policy_step(params, x, hidden)
-    logits = masked_logits(logits, mask[:, take])
-    if greedy:
-        return jnp.argmax(logits, -1).astype(jnp.int32), hidden
-    return jax.random.categorical(key, logits).astype(jnp.int32), hidden
+
+    def act(params, key, obs, mask, states, levels, hidden):
+        x = learner.agent_inputs(obs[:, take])
+        hidden, logits = learner.policy_step(params, x, hidden)
+        logits = masked_logits(logits, mask[:, take])
+        if greedy:
+            return jnp.argmax(logits, -1).astype(jnp.int32), hidden
+        return sample(key, logits), hidden
+
+    return Policy(act, learner.initial_hidden, slots)
 
 
 def policy_team(policy: TrainedPolicy, team: int, greedy: bool = False) -> PolicyTeam:
     """`policy` seated on `team` (its own, or the other through the team swap: `seat`) for
-    `tabx rollout` (`tabx.policy_team`): it acts as in `play`, on one env."""
+    `tabx rollout` (`tabx.policy_team`): it acts as in `play`."""
     env_config = policy.learner.env_config
     slots = seat(policy, team, env_config)
-    act, initial_hidden = _single_env_policy(policy.learner, slots, greedy)
     return PolicyTeam(label=str(policy), title=f"{policy.run_dir.name} ({policy.config.algorithm})",
-                      env_config=env_config, slots=slots, act=act,
-                      initial_hidden=initial_hidden, params=policy.params,
-                      matmul_dtype=policy.learner.ppo.matmul_dtype,
+                      env_config=env_config, policy=learner_policy(policy.learner, slots, greedy),
+                      params=policy.params, matmul_dtype=policy.learner.ppo.matmul_dtype,
                       scenario=policy.config.env.scenario[0],
                       opponent=policy.config.env.opponent, profile=policy.config.env.profile)
 
@@ -136,21 +143,6 @@ def load_policy_team(run_dir: str, team: int, greedy: bool = False) -> PolicyTea
     ConfigError (a CheckpointError for a damaged checkpoint) naming the folder when it
     cannot."""
     return policy_team(load_policy(run_dir), team, greedy)
-
-
-@functools.lru_cache(maxsize=32)
-def _single_env_policy(learner: PPOLearner, slots: tuple[int, int], greedy: bool
-                       ) -> tuple[Any, Any]:
-    """(act, initial_hidden) of a `PolicyTeam`: `_policy_actions` on a batch of one env. One
-    pair per learner (process-cached), seat and mode, so that rollouts of runs of one config
-    share their compilation."""
-
-    def act(params, obs, mask, hidden, key):
-        actions, hidden = _policy_actions(learner, params, obs[None], mask[None], hidden, key,
-                                          greedy, slots)
-        return actions[0], hidden
-
-    return act, functools.partial(learner.initial_hidden, 1)
 
 
 def play(env_config: EnvConfig, level: EnvParams, ally: Side, enemy: Side, episodes: int,
@@ -168,7 +160,7 @@ def play(env_config: EnvConfig, level: EnvParams, ally: Side, enemy: Side, episo
     # The program sees the learners and the controllers' kinds; tiers are data in the level.
     learners = tuple(s.learner if isinstance(s, TrainedPolicy) else None for s in sides)
     kinds = tuple(Controller(c.kind) for c in controllers)
-    run = _play_program(env_config, learners, seats, kinds, episodes, greedy, record)
+    run = _play_program(env_config, learners, seats, kinds, greedy, record)
     won, returns, lengths, trace = jax.device_get(run(params, levels, jax.random.key(seed)))
     states, infos = trace if record else (None, None)
     return EvalResult(episodes, np.asarray(won), np.asarray(returns), np.asarray(lengths),
@@ -177,51 +169,25 @@ def play(env_config: EnvConfig, level: EnvParams, ally: Side, enemy: Side, episo
 
 @functools.lru_cache(maxsize=32)
 def _play_program(env_config: EnvConfig, learners: tuple, seats: tuple, controllers: tuple,
-                  episodes: int, greedy: bool, record: bool) -> Any:
+                  greedy: bool, record: bool) -> Any:
     """The compiled episodes of `play` for these static settings (`learners`: per team the
-    (process-cached) learner of its policy or None; `seats`: its slots)."""
+    (process-cached) learner of its policy or None; `seats`: its slots); one compilation per
+    episode count."""
     env = TabxEnv(env_config)
+    policies = tuple(None if learner is None else learner_policy(learner, slots, greedy)
+                     for learner, slots in zip(learners, seats, strict=True))
     # Compiled for the networks' matmul dtype (bfloat16 if either policy multiplies in it).
     dtypes = {learner.ppo.matmul_dtype for learner in learners if learner is not None}
     matmul_dtype = "bfloat16" if "bfloat16" in dtypes else "float32"
+    # Episode 0's states and infos, per step (`--gif`).
+    first = (lambda states, info, levels: jax.tree.map(lambda x: x[0], (states, info))
+             ) if record else None
 
     @functools.partial(learner_jit, matmul_dtype=matmul_dtype)
     def run(params, levels, key):
-        _, states = jax.vmap(env.reset)(jax.random.split(key, episodes), levels)
-        hidden = [learner.initial_hidden(episodes) if learner is not None else None
-                  for learner in learners]
-        zeros = jnp.zeros((episodes, C.NUM_TEAMS), jnp.float32)
-
-        def body(carry, step_key):
-            states, hidden, returns, length = carry
-            keys = jax.random.split(step_key, 4)
-            obs = jax.vmap(env.observe)(states, levels)
-            mask = jax.vmap(env.action_mask)(states, levels)
-            external = jnp.zeros((episodes, env_config.num_units), jnp.int32)
-            hidden = list(hidden)
-            for team, learner in enumerate(learners):
-                if learner is None:
-                    continue
-                acts, hidden[team] = _policy_actions(learner, params[team], obs, mask,
-                                                     hidden[team], keys[team], greedy,
-                                                     seats[team])
-                external = external.at[:, slice(*seats[team])].set(acts)
-            actions, states_h = jax.vmap(
-                lambda k, s, lv, e: controlled_actions(k, s, lv, e, controllers))(
-                jax.random.split(keys[2], episodes), states, levels, external)
-            was_done = states.done
-            _, states, reward, done, info = jax.vmap(env.step, in_axes=(None, 0, 0, 0))(
-                keys[3], states_h, actions, levels)
-            returns = returns + reward
-            length = length + (~was_done).astype(jnp.int32)
-            out = (jax.tree.map(lambda x: x[0], states), jax.tree.map(lambda x: x[0], info)
-                   ) if record else None
-            return (states, hidden, returns, length), out
-
-        init = (states, hidden, zeros, jnp.zeros(episodes, jnp.int32))
-        (states, _, returns, length), trace = jax.lax.scan(
-            body, init, jax.random.split(key, env_config.max_steps))
-        return states.won, returns, length, trace
+        out = play_episodes(env, levels, key, env_config.max_steps, controllers, policies,
+                            tuple(params), keys=EVAL_KEYS, record=first)
+        return out.states.won, out.returns, out.length, out.record
 
     return run
 
@@ -247,6 +213,6 @@ def format_result(result: EvalResult, sides: tuple[Side, Side], scenario: str,
     return "\n".join(lines)
 
 
-__all__ = ["TEAM_NAMES", "EvalResult", "Side", "TrainedPolicy", "format_result", "load_policy",
-           "load_policy_team", "mean_ci", "parse_side", "play", "policy_team", "seat",
-           "team_slots", "wilson"]
+__all__ = ["TEAM_NAMES", "EvalResult", "Side", "TrainedPolicy", "format_result",
+           "learner_policy", "load_policy", "load_policy_team", "mean_ci", "parse_side", "play",
+           "policy_team", "seat", "team_slots", "wilson"]

@@ -34,6 +34,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from tabx.episodes import LOOP_KEYS, Policy, sample
+from tabx.episodes import play as play_episodes
 from tabx.errors import UserError
 from tabx.params import EnvParams, repeat_level
 from ued.config import ConfigError
@@ -88,28 +90,42 @@ def _program(learner: PPOLearner, states: int, rollouts: int, horizon: int) -> A
     env, team = learner.env, learner.team
     gamma = learner.ppo.gamma
     max_steps = learner.env_config.max_steps
+    slots = learner.slots
+
+    def network(params, obs, mask, env_states, levels, hidden):
+        """(hidden, masked logits, value per agent) of every env's policy step."""
+        world = learner._world(env_states, levels)
+        hidden, logits, value = learner.act_step(params, learner.agent_inputs(obs[:, slots]),
+                                                 world, hidden)
+        return hidden, masked_logits(logits, mask[:, slots]), value
 
     def act(params, env_states, levels, hidden, keys):
         """One policy step of every env: (hidden, value, env actions, states after the
         opponent's controller)."""
-        obs = jax.vmap(env.observe)(env_states, levels)[:, learner.slots]
-        mask = jax.vmap(env.action_mask)(env_states, levels)[:, learner.slots]
-        world = learner._world(env_states, levels)
-        hidden, logits, value = learner.act_step(params, learner.agent_inputs(obs), world,
-                                                 hidden)
+        obs = jax.vmap(env.observe)(env_states, levels)
+        mask = jax.vmap(env.action_mask)(env_states, levels)
+        hidden, logits, value = network(params, obs, mask, env_states, levels, hidden)
         k_act, k_other = jnp.unstack(jax.vmap(jax.random.split)(keys), axis=1)
-        action = jax.vmap(jax.random.categorical)(k_act, masked_logits(logits, mask))
+        action = jax.vmap(jax.random.categorical)(k_act, logits)
         actions, env_states = learner._join_actions(k_other, env_states, levels,
                                                     action.astype(jnp.int32))
-        alive = env_states.alive[:, learner.slots]
+        alive = env_states.alive[:, slots]
         return hidden, learner.team_value(value, alive), actions, env_states
+
+    def policy_act(params, key, obs, mask, env_states, levels, hidden):
+        hidden, logits, _ = network(params, obs, mask, env_states, levels, hidden)
+        return sample(key, logits), hidden
+
+    policies = [None, None]
+    policies[team] = Policy(policy_act, learner.initial_hidden, (slots.start, slots.stop))
 
     def reset_where(done, tree):
         return jax.tree.map(
             lambda h: jnp.where(done.reshape(done.shape + (1,) * (h.ndim - 1)), 0.0, h), tree)
 
     def collect(params, levels, key):
-        """Step 1: the kept (state, hidden, value) of each env."""
+        """Step 1: the kept (state, hidden, value) of each env (a training-style rollout:
+        episodes restart, so any of the `horizon` steps can be kept)."""
         k_pick, k_steps = jax.random.split(key)
         pick = jax.random.randint(k_pick, (states,), 0, horizon)
         start = jax.vmap(env.initial_state)(levels)
@@ -135,32 +151,16 @@ def _program(learner: PPOLearner, states: int, rollouts: int, horizon: int) -> A
         return keep
 
     def continuations(params, levels, kept_states, kept_hidden, key):
-        """Step 2: `rollouts` continuations of each kept state; (S, R) discounted returns."""
-        n = states * rollouts
+        """Step 2: `rollouts` continuations of each kept state until its episode ends (the
+        episode player, `tabx.episodes.play`); (S, R) discounted returns."""
         spread = lambda x: jnp.repeat(x, rollouts, axis=0)
-        env_states = jax.tree.map(spread, kept_states)
-        hidden = jax.tree.map(spread, kept_hidden)
-        levels = jax.tree.map(spread, levels)
-        zeros = jnp.zeros(n, jnp.float32)
-
-        def cond(carry):
-            env_states, _, _, _, t, _ = carry
-            return (t < max_steps) & ~jnp.all(env_states.done)
-
-        def body(carry):
-            env_states, hidden, ret, discount, t, key = carry
-            key, k_step = jax.random.split(key)
-            keys = jax.random.split(k_step, n)
-            hidden, _, actions, stepped = act(params, env_states, levels, hidden, keys)
-            was_done = env_states.done
-            _, env_states, reward, _, _ = jax.vmap(env.step)(keys, stepped, actions, levels)
-            ret = ret + jnp.where(was_done, 0.0, discount * reward[:, team])
-            return env_states, hidden, ret, discount * gamma, t + 1, key
-
-        init = (env_states, hidden, zeros, jnp.ones(n, jnp.float32), jnp.zeros((), jnp.int32),
-                key)
-        ret = jax.lax.while_loop(cond, body, init)[2]
-        return ret.reshape(states, rollouts)
+        hidden = [None, None]
+        hidden[team] = jax.tree.map(spread, kept_hidden)
+        out = play_episodes(env, jax.tree.map(spread, levels), key, max_steps,
+                            learner.controllers, tuple(policies), (params, params),
+                            keys=LOOP_KEYS, start=jax.tree.map(spread, kept_states),
+                            hidden=tuple(hidden), until_done=True, discount=gamma)
+        return out.returns[:, team].reshape(states, rollouts)
 
     @learner.jit
     def run(params, levels, key):

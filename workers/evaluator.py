@@ -7,11 +7,12 @@
     print(format_table(result)); atomic_write_json(path, to_json(result))
 
 Every entry is played for `episodes` episodes (one env each, from the entry's level, for the
-learner's `max_steps`; a finished episode is frozen, as in `ued.evaluate.play`). All entries of
-a suite run in ONE jitted call: their levels are stacked entry by entry (the opponent's tier
-written into each level, as `with_tiers`), and the opponent's kind (heuristic, random, idle) is
-an int per env, so the call is compiled once per (learner, kinds in the suite, episode total)
-and `evaluate` with new parameters during training never recompiles.
+learner's `max_steps`, by the episode player `tabx.episodes.play`; a finished episode is
+frozen). All entries of a suite run in ONE jitted call: their levels are stacked entry by entry
+(the opponent's tier written into each level, as `with_tiers`), and the opponent's kind
+(heuristic, random, idle) is an int per env, so the call is compiled once per (learner, kinds
+in the suite, episode total) and `evaluate` with new parameters during training never
+recompiles.
 
 The policy samples from its masked action distribution (`greedy=True`: the argmax) with its
 recurrent state carried over the episode. Per entry: the policy team's win rate with a 95 %
@@ -31,20 +32,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tabx import constants as C
-from tabx.controllers import Controller, with_tiers
-from tabx.heuristic import heuristic_actions_from_bits
-from tabx.observe import action_mask, pick_legal
+from tabx.controllers import SCRIPTED_KINDS, Controller, KindPerEnv, with_tiers
+from tabx.episodes import SUITE_KEYS
+from tabx.episodes import play as play_episodes
 from tabx.params import EnvParams, stack_levels
 from tabx.profiles import DEFAULT_PROFILE, with_profile
-from tabx.rng import random_words, to_unit_float
 from ued.errors import ConfigError
-from ued.evaluate import TEAM_NAMES, mean_ci, wilson
-from ued.learners.ppo import PPOLearner, masked_logits
+from ued.evaluate import TEAM_NAMES, learner_policy, mean_ci, wilson
+from ued.learners.ppo import PPOLearner
 from ued.suites import EvalSuite
 from ued.tensorboard import SummaryWriter
 
-OPPONENT_KINDS = ("heuristic", "random", "idle")  # the int code of each env's opponent
+OPPONENT_KINDS = SCRIPTED_KINDS  # the int code of each env's opponent
 
 
 @dataclass(frozen=True)
@@ -86,65 +85,22 @@ class SuiteResult:
         raise KeyError(label)
 
 
-def _opponent_actions(key: jax.Array, state: Any, level: EnvParams, kind: jax.Array,
-                      used: tuple[str, ...]) -> tuple[jax.Array, Any]:
-    """Actions (N,) of one env's opponent of kind `kind` (an OPPONENT_KINDS index), and the
-    state with the heuristic's memory (updated only where the heuristic plays). Only the kinds
-    in `used` are computed."""
-    n = level.units.team.shape[0]
-    bits = random_words(key, (2, n))
-    actions = jnp.full((n,), C.IDLE, jnp.int32)
-    if "heuristic" in used:
-        heuristic, after = heuristic_actions_from_bits(bits[0], state, level)
-        is_h = kind == OPPONENT_KINDS.index("heuristic")
-        actions = jnp.where(is_h, heuristic, actions)
-        state = jax.tree.map(lambda a, b: jnp.where(is_h, a, b), after, state)
-    if "random" in used:
-        random = pick_legal(to_unit_float(bits[1]), action_mask(state, level))
-        actions = jnp.where(kind == OPPONENT_KINDS.index("random"), random, actions)
-    return actions.astype(jnp.int32), state
-
-
 @functools.lru_cache(maxsize=16)
 def compiled_runner(learner: PPOLearner, used: tuple[str, ...], greedy: bool):
     """The jitted `run(params, levels, kinds, key) -> (won (E,), returns (E,), lengths (E,))`
     of a learner: E envs (any number; a new E compiles anew), one level and one opponent kind
-    per env, `max_steps` steps. Cached, so suites of one learner share compilations."""
-    env, config, team, slots = learner.env, learner.env_config, learner.team, learner.slots
-    own = np.asarray(config.slot_teams() == team)  # (N,) the policy's unit slots
+    per env, `max_steps` steps (`tabx.episodes.play`). Cached, so suites of one learner share
+    compilations."""
+    env, config, team = learner.env, learner.env_config, learner.team
+    controllers = [Controller("external"), Controller("external")]
+    controllers[1 - team] = KindPerEnv(used)
+    policies = [None, None]
+    policies[team] = learner_policy(learner, (learner.slots.start, learner.slots.stop), greedy)
 
     def run(params, levels, kinds, key):
-        num = kinds.shape[0]
-        k_reset, k_run = jax.random.split(key)
-        obs, states = jax.vmap(env.reset)(jax.random.split(k_reset, num), levels)
-        hidden = learner.initial_hidden(num)
-
-        def body(carry, step_key):
-            states, obs, hidden, returns, length = carry
-            k_act, k_opp, k_step = jax.random.split(step_key, 3)
-            mask = jax.vmap(env.action_mask)(states, levels)[:, slots]
-            hidden, logits = learner.policy_step(params, learner.agent_inputs(obs[:, slots]),
-                                                 hidden)
-            logits = masked_logits(logits, mask)
-            if greedy:
-                act = jnp.argmax(logits, -1).astype(jnp.int32)
-            else:
-                act = jax.random.categorical(k_act, logits).astype(jnp.int32)
-            opponent, states_h = jax.vmap(functools.partial(_opponent_actions, used=used))(
-                jax.random.split(k_opp, num), states, levels, kinds)
-            external = jnp.zeros((num, config.num_units), jnp.int32).at[:, slots].set(act)
-            actions = jnp.where(own[None, :], external, opponent)
-            was_done = states.done
-            obs, states, reward, _, _ = jax.vmap(env.step, in_axes=(None, 0, 0, 0))(
-                k_step, states_h, actions, levels)
-            returns = returns + reward[:, team]
-            length = length + (~was_done).astype(jnp.int32)
-            return (states, obs, hidden, returns, length), None
-
-        init = (states, obs, hidden, jnp.zeros(num, jnp.float32), jnp.zeros(num, jnp.int32))
-        (states, _, _, returns, length), _ = jax.lax.scan(
-            body, init, jax.random.split(k_run, config.max_steps))
-        return states.won[:, team], returns, length
+        out = play_episodes(env, levels, key, config.max_steps, tuple(controllers),
+                            tuple(policies), (params, params), keys=SUITE_KEYS, kinds=kinds)
+        return out.states.won[:, team], out.returns[:, team], out.length
 
     return learner.jit(run)
 

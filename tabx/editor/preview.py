@@ -1,12 +1,12 @@
 """Editor previews: play a scenario in the real simulator and return every step as plain data.
 
-One preview is one jitted `lax.scan` over `TabxEnv.step`, with the actions of each team chosen
-by a `Controller` (`heuristic:TIER`, `heuristic`, `random` or `idle`). Compiled functions are
-cached per (EnvConfig, controller kinds). The config is padded to buckets (unit slots and zone
-slots to powers of two, at least 4; steps to powers of two, at least 64) so that adding a unit,
-drawing a zone or asking for a few more steps reuses the compiled function: only the first
-preview of a size pays for compilation. The heuristic tier is level data, so switching tiers
-never recompiles either.
+One preview is one jitted episode of the episode player (`tabx.episodes.play`), with the
+actions of each team chosen by a `Controller` (`heuristic:TIER`, `heuristic`, `random` or
+`idle`). Compiled functions are cached per (EnvConfig, controller kinds). The config is padded
+to buckets (unit slots and zone slots to powers of two, at least 4; steps to powers of two, at
+least 64) so that adding a unit, drawing a zone or asking for a few more steps reuses the
+compiled function: only the first preview of a size pays for compilation. The heuristic tier is
+level data, so switching tiers never recompiles either.
 """
 
 from __future__ import annotations
@@ -73,8 +73,10 @@ def _build(config, kinds: tuple[str, str]):
     import jax
     import jax.numpy as jnp
 
-    from tabx.controllers import Controller, controlled_actions
+    from tabx.controllers import Controller
     from tabx.env import TabxEnv
+    from tabx.episodes import PREVIEW_KEYS
+    from tabx.episodes import play as play_episodes
     from tabx.jit_options import simulator_jit
 
     env = TabxEnv(config)
@@ -87,17 +89,14 @@ def _build(config, kinds: tuple[str, str]):
                 "done": state.done, "won": state.won}
 
     def play(level, key):
-        _, state = env.reset(key, level)
-
-        def body(state, k):
-            k_act, k_step = jax.random.split(k)
-            actions, state = controlled_actions(k_act, state, level, None, controllers)
-            _, state, _, _, info = env.step(k_step, state, actions, level)
-            return state, (frame(state, level), info["attacking"])
-
-        keys = jax.random.split(key, config.max_steps)
-        _, (frames, attacking) = jax.lax.scan(body, state, keys)
-        return frame(state, level), frames, attacking
+        levels = jax.tree.map(lambda x: x[None], level)  # a batch of one episode
+        out = play_episodes(env, levels, key[None], config.max_steps, controllers,
+                            keys=PREVIEW_KEYS,
+                            record=lambda states, info, levels: (frame(states, levels),
+                                                                 info["attacking"]))
+        first = jax.tree.map(lambda x: x[0], frame(out.start, levels))
+        frames, attacking = jax.tree.map(lambda x: x[:, 0], out.record)
+        return first, frames, attacking
 
     return simulator_jit(play)
 
