@@ -33,7 +33,7 @@ import numpy as np
 from level_buffer import weights as W
 from level_buffer.config import BufferConfig, Source
 from level_buffer.dedup import DuplicateIndex
-from level_buffer.fileformat import BufferFileError, decode, encode, make_rng
+from level_buffer.fileformat import decode, encode, make_rng, read_file
 from level_buffer.state import SLOT_FIELDS, STAT_NAMES, BufferState
 from level_buffer.tree import LevelSpec, named_leaves
 
@@ -472,8 +472,4 @@ class LevelBuffer:
         one, as dicts keyed by key path ("units.health"). Raises BufferFileError naming the
         file for a missing, truncated, corrupted or mismatched file; nothing is
         half-loaded."""
-        try:
-            data = Path(path).read_bytes()
-        except OSError as err:
-            raise BufferFileError(path, f"cannot read: {err.strerror or err}") from err
-        return cls.from_bytes(data, template_level, str(path))
+        return cls.from_bytes(read_file(path), template_level, str(path))

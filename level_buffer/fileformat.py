@@ -13,6 +13,11 @@ little-endian bytes of every level leaf and slot field, filled slots only:
 `decode` checks magic, version, checksum, every length, dtype and shape, and the buffer's own
 invariants before anything is built, so a bad file raises `BufferFileError` and is never
 half-loaded. A template may fill leaves that the file predates (`tree.file_defaults`).
+
+`read_file` reads a file only when it is a regular file whose size is what its outer map
+declares, and whose payload is no bigger than a buffer of its header's capacity can be: a FIFO,
+a device (`/dev/zero`) or a huge sparse file is refused after reading at most the header
+(MAX_HEADER_BYTES), never read whole.
 """
 
 from __future__ import annotations
@@ -20,7 +25,8 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from typing import Any
+import stat
+from typing import IO, Any
 
 import msgpack
 import numpy as np
@@ -32,6 +38,11 @@ from level_buffer.tree import LevelSpec
 MAGIC = "tabx-level-buffer"
 FORMAT_VERSION = 1
 BIT_GENERATORS = ("PCG64", "PCG64DXSM", "Philox", "SFC64", "MT19937")
+# The header holds names, shapes, the config and the RNG state: a few kB. A bigger one is
+# refused before it is read.
+MAX_HEADER_BYTES = 1 << 20
+# Room for the payload's own msgpack framing (map, array and bin headers, field names).
+_PAYLOAD_FRAMING = 1024
 
 
 class BufferFileError(ValueError):
@@ -107,6 +118,162 @@ def _array(data: Any, dtype: np.dtype, shape: tuple[int, ...], what: str) -> np.
         raise ValueError(f"{what}: {len(data)} bytes, expected {expected} for shape {shape} "
                          f"dtype {dtype}")
     return np.frombuffer(data, dtype.newbyteorder("<")).astype(dtype).reshape(shape)
+
+
+def _file_kind(mode: int) -> str:
+    for test, kind in ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO"),
+                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                       (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return kind
+    return "not a regular file"
+
+
+def read_file(path: str | os.PathLike) -> bytes:
+    """The bytes of a level-buffer file, read only after its layout says they fit.
+
+    BufferFileError(path, ...) for a missing or non-regular file (checked before it is opened,
+    so a FIFO never blocks), a size other than its outer map declares (truncated or padded),
+    a header over MAX_HEADER_BYTES, or a payload bigger than a buffer of the header's
+    capacity and leaves can be."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as err:
+        raise BufferFileError(path, f"cannot read: {err.strerror or err}") from err
+    if not stat.S_ISREG(mode):
+        raise BufferFileError(path, f"cannot read: {_file_kind(mode)}, not a level-buffer file")
+    try:
+        # O_NONBLOCK: should the path become a FIFO after the check, open does not wait.
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    except OSError as err:
+        raise BufferFileError(path, f"cannot read: {err.strerror or err}") from err
+    with os.fdopen(fd, "rb") as f:
+        info = os.fstat(f.fileno())
+        if not stat.S_ISREG(info.st_mode):
+            raise BufferFileError(path, f"cannot read: {_file_kind(info.st_mode)}, not a "
+                                  f"level-buffer file")
+        size = info.st_size
+        try:
+            bins, values = _outer_layout(f, size)
+        except ValueError as err:
+            raise BufferFileError(path, f"not a readable level-buffer file (truncated or "
+                                  f"corrupted msgpack: {err})") from None
+        _check_payload_size(f, bins, values, path)
+        f.seek(0)
+        data = f.read(size)
+    if len(data) != size:
+        raise BufferFileError(path, f"cannot read: the file changed while it was read "
+                              f"({len(data)} of {size} bytes)")
+    return data
+
+
+def _take(f: IO[bytes], n: int) -> bytes:
+    data = f.read(n)
+    if len(data) != n:
+        raise ValueError("truncated")
+    return data
+
+
+def _length(f: IO[bytes], width: int) -> int:
+    return int.from_bytes(_take(f, width), "big")
+
+
+def _outer_layout(f: IO[bytes], size: int
+                  ) -> tuple[dict[str, tuple[int, int]], dict[str, Any]]:
+    """({key: (offset, length)} of the outer map's bin values, {key: value} of the others),
+    found by reading the map's framing and seeking past every bin; ValueError unless the map
+    ends exactly at `size`."""
+    if size == 0:
+        raise ValueError("the file is empty")
+    first = _take(f, 1)[0]
+    if 0x80 <= first <= 0x8F:
+        entries = first & 0x0F
+    elif first in (0xDE, 0xDF):
+        entries = _length(f, 2 if first == 0xDE else 4)
+    else:
+        raise ValueError(f"expected a map, found type byte 0x{first:02x}")
+    if entries > 16:
+        raise ValueError(f"an outer map of {entries} entries")
+    bins: dict[str, tuple[int, int]] = {}
+    values: dict[str, Any] = {}
+    for _ in range(entries):
+        key = _small_value(f)
+        if not isinstance(key, str):
+            raise ValueError("an outer map key that is not a string")
+        byte = _take(f, 1)[0]
+        if byte in (0xC4, 0xC5, 0xC6):  # bin 8/16/32: skipped, not read
+            length = _length(f, {0xC4: 1, 0xC5: 2, 0xC6: 4}[byte])
+            offset = f.tell()
+            if offset + length > size:
+                raise ValueError(f"{key!r} declares {length} bytes; the file is {size} bytes")
+            bins[key] = (offset, length)
+            f.seek(offset + length)
+        else:
+            f.seek(-1, os.SEEK_CUR)
+            values[key] = _small_value(f)
+    end = f.tell()
+    if end != size:
+        raise ValueError(f"the map ends at byte {end} of {size}: extra data")
+    return bins, values
+
+
+def _small_value(f: IO[bytes]) -> Any:
+    """One scalar or short string of the outer map (magic, version, digest, keys)."""
+    byte = _take(f, 1)[0]
+    if byte <= 0x7F or byte >= 0xE0:  # positive and negative fixint
+        return byte if byte <= 0x7F else byte - 0x100
+    if 0xA0 <= byte <= 0xBF or byte in (0xD9, 0xDA):  # fixstr, str 8, str 16
+        length = byte & 0x1F if byte <= 0xBF else _length(f, 1 if byte == 0xD9 else 2)
+        return _take(f, length).decode("utf-8", "replace")
+    widths = {0xCC: 1, 0xCD: 2, 0xCE: 4, 0xCF: 8, 0xD0: 1, 0xD1: 2, 0xD2: 4, 0xD3: 8}
+    if byte in widths:
+        return _length(f, widths[byte])
+    if byte in (0xC0, 0xC2, 0xC3):  # nil, false, true
+        return None
+    raise ValueError(f"unexpected type byte 0x{byte:02x} in the outer map")
+
+
+def _check_payload_size(f: IO[bytes], bins: dict[str, tuple[int, int]],
+                        values: dict[str, Any], path: str | os.PathLike) -> None:
+    """Refuse a payload bigger than a buffer of the header's capacity and leaves can be,
+    reading only the header. A header that gives no bound is damaged: the checksum (computed
+    in pieces, never holding the payload) or the header's own problem says how."""
+    if "header" not in bins or "payload" not in bins or values.get("magic") != MAGIC:
+        return  # not a level-buffer file: `read_header` says so without the payload
+    offset, length = bins["header"]
+    if length > MAX_HEADER_BYTES:
+        raise BufferFileError(path, f"not a level-buffer file: a header of {length} bytes (at "
+                              f"most {MAX_HEADER_BYTES})")
+    f.seek(offset)
+    try:
+        header = msgpack.unpackb(f.read(length), raw=False)
+        capacity = _get(header, "capacity", int, "header")
+        leaves = _get(header, "leaves", list, "header")
+        fields = _get(header, "slot_fields", list, "header")
+        per_level = sum(int(np.prod(leaf["shape"], dtype=np.int64))
+                        * np.dtype(str(leaf["dtype"])).itemsize for leaf in leaves)
+        per_level += sum(np.dtype(str(field["dtype"])).itemsize for field in fields)
+        # a bin header per leaf and per field, and the fields' names
+        framing = _PAYLOAD_FRAMING + 16 * (len(leaves) + len(fields))
+        framing += sum(len(str(field["name"])) for field in fields)
+    except Exception as err:  # noqa: BLE001 (msgpack and numpy raise many kinds)
+        digest = hashlib.sha256()
+        for start, length in (bins["header"], bins["payload"]):
+            f.seek(start)
+            while length > 0:
+                chunk = f.read(min(length, 1 << 20))
+                if not chunk:
+                    break
+                digest.update(chunk)
+                length -= len(chunk)
+        if digest.hexdigest() != values.get("sha256"):
+            raise BufferFileError(path, "checksum mismatch: the file is corrupted") from None
+        raise BufferFileError(path, f"header: {err}") from None
+    bound = max(capacity, 0) * per_level + framing
+    if bins["payload"][1] > bound:
+        raise BufferFileError(path, f"not a level-buffer file: a payload of "
+                              f"{bins['payload'][1]} bytes, more than a buffer of capacity "
+                              f"{capacity} holds (at most {bound})")
 
 
 def read_header(data: bytes, name: str) -> tuple[dict[str, Any], bytes]:

@@ -1,7 +1,9 @@
 """Hostile requests to the editor's HTTP server: bodies are bounded before anything is
 read (negative, missing, non-numeric, conflicting or oversized Content-Length), request bodies
-go through the strict JSON reader, free-text fields are bounded, and the server keeps serving
-afterwards. Raw sockets to 127.0.0.1 only; every read has a timeout and a byte bound.
+go through the strict JSON reader, free-text fields are bounded, a foreign Origin writes
+nothing, a request takes exactly one Host and no absolute URI naming another host, connections
+beyond the cap get a 503 at once, and the server keeps serving afterwards. Raw sockets to
+127.0.0.1 only; every read has a timeout and a byte bound.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from tabx.editor.server import MAX_BODY, make_server
+from tabx.editor.server import MAX_BODY, MAX_CONNECTIONS, EditorServer, make_server
 from tabx.scenarios.format import MAX_DESCRIPTION
 
 TIMEOUT_S = 5.0  # every socket operation; the server answers these requests in milliseconds
@@ -262,3 +264,79 @@ def test_long_free_text_fields_are_bounded(server, user_dir):
 
 def test_units_info_serves_the_description_limit(server):
     assert get(server, "/api/units")[1]["max_description"] == MAX_DESCRIPTION
+
+
+# --- who may ask: Origin, Host, request URI; how many at once ----------------------------------
+
+
+def save_request(server, *headers: str, path: str = "/api/save", name: str = "mine") -> bytes:
+    payload = json.dumps({"scenario": DUEL, "name": name, "category": "user"}).encode()
+    return head(server, "POST", path, JSON, f"Content-Length: {len(payload)}",
+                *headers) + payload
+
+
+def test_a_foreign_origin_may_not_write(server, user_dir):
+    port = server.server_address[1]
+    for origin in ("http://evil.example", "null", f"http://127.0.0.1:{port + 1}",
+                   f"https://127.0.0.1:{port}"):
+        status, _, body, elapsed, _ = exchange(server, save_request(server, f"Origin: {origin}"))
+        assert status == 403 and "another origin" in body["error"]["message"], (origin, body)
+        assert elapsed < FAST_S
+        assert not user_dir.exists() or not any(user_dir.rglob("*.json"))
+    status, _, body, _, _ = exchange(server, head(server, "PUT", "/api/save", JSON,
+                                                  "Origin: http://evil.example"))
+    assert status == 403, body
+    # The page's own origin (either loopback name) saves.
+    for i, own in enumerate((f"http://127.0.0.1:{port}", f"http://localhost:{port}")):
+        status, _, body, _, _ = exchange(server, save_request(server, f"Origin: {own}",
+                                                              name=f"mine{i}"))
+        assert status == 200 and body["ok"] is True, body
+    still_serving(server)
+
+
+def test_one_host_and_no_foreign_absolute_uri(server, user_dir):
+    port = server.server_address[1]
+    status, _, body, _, _ = exchange(server, save_request(server, f"Host: 127.0.0.1:{port}"))
+    assert status == 400 and "exactly one Host" in body["error"]["message"], body
+    status, _, body, _, _ = exchange(server, save_request(server, "Host: evil.example"))
+    assert status == 400, body
+    # (`//evil.example/api/save` is a path: http.server folds its leading slashes, a 404.)
+    for uri in ("http://evil.example/api/save", f"http://evil.example:{port}/api/save",
+                f"ftp://127.0.0.1:{port}/api/save"):
+        status, _, body, _, _ = exchange(server, save_request(server, path=uri))
+        assert status == 400 and "another host" in body["error"]["message"], (uri, body)
+    assert not user_dir.exists() or not any(user_dir.rglob("*.json"))
+    status, _, body, _, _ = exchange(server, save_request(
+        server, path=f"http://127.0.0.1:{port}/api/save"))
+    assert status == 200 and body["ok"] is True, body
+    still_serving(server)
+
+
+def test_connections_beyond_the_cap_get_503_at_once(user_dir):
+    srv = EditorServer(0, max_connections=2)
+    thread = threading.Thread(target=srv.serve_forever, kwargs={"poll_interval": 0.05},
+                              daemon=True)
+    thread.start()
+    try:
+        idle = [connect(srv) for _ in range(2)]  # each holds a thread, sending nothing
+        time.sleep(0.2)
+        with connect(srv) as extra:
+            t0 = time.monotonic()
+            status, headers, body = read_response(extra)
+            assert status == 503 and body["ok"] is False and time.monotonic() - t0 < FAST_S
+            assert headers.get("connection", "").lower() == "close"
+        for sock in idle:
+            sock.close()
+        deadline = time.monotonic() + FAST_S
+        while True:  # the idle connections' threads end and free their places
+            try:
+                still_serving(srv)
+                break
+            except (AssertionError, http.client.HTTPException, OSError):
+                assert time.monotonic() < deadline, "the server stayed full"
+                time.sleep(0.05)
+        assert MAX_CONNECTIONS >= 8  # a browser's few connections per host fit
+    finally:
+        srv.shutdown()
+        srv.server_close()
+        thread.join(TIMEOUT_S)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import json
 import os
 import re
 import shutil
@@ -132,6 +133,13 @@ def flip(path: Path, at: float = 0.5) -> None:
     path.write_bytes(bytes(data))
 
 
+def flip_array(item: Path) -> None:
+    """One bit in the bytes of the largest array data file of a checkpoint item."""
+    data_file = max((p for p in item.rglob("*") if p.is_file() and p.parent.name == "d"),
+                    key=lambda p: p.stat().st_size)
+    flip(data_file, 0.1)
+
+
 def each_step(run: Path, rel: str, harm) -> None:
     for step in (2, STEPS):
         harm(run / rel.format(step=step))
@@ -202,6 +210,14 @@ RUN_DAMAGE = {
                            r"cannot be restored", CHECKPOINT_READERS),
     "checkpoint item missing": (lambda r: each_step(r, "checkpoints/{step}/default", remove),
                                 r"cannot be restored", CHECKPOINT_READERS),
+    # Orbax keeps no checksum of the values: a flip that decodes is caught by the digests
+    # recorded at saving (tests/test_fuzz_files.py shows which catches it).
+    "array data bit flip": (lambda r: each_step(r, "checkpoints/{step}/default", flip_array),
+                            r"checkpoints/4: (damaged: array train_state/|cannot be restored)",
+                            (CHECK, RESUME)),
+    "state files edited": (lambda r: each_step(r, "levels/state-{step}.json", lambda p: (
+        p.write_text(json.dumps({**json.loads(p.read_text()), "version": 1})))),
+        r"state-4\.json changed after the checkpoint was saved", SNAPSHOT_READERS),
     "buffer snapshots truncated": (lambda r: each_step(r, "levels/buffer-{step}.msgpack",
                                                        truncate), r"buffer-4\.msgpack",
                                    SNAPSHOT_READERS),

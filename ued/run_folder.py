@@ -36,6 +36,8 @@ CHECKPOINT_DIR = "checkpoints"
 LEVELS_DIR = "levels"
 SET_ASIDE_DIR = "set-aside"  # files a resume or a restart moved away, kept for inspection
 SEED_DIR_PREFIX = "seed-"  # RUN_DIR/seed-<s>/: seed s of a multi-seed run
+# The level snapshot of a step, in LEVELS_DIR; each checkpoint records their digests.
+SNAPSHOT_FILES = ("buffer-{}.msgpack", "learnable-{}.msgpack", "state-{}.json")
 
 
 def seed_dir(run_dir: str | Path, seed: int) -> Path:
@@ -100,9 +102,10 @@ def read_run_config(run_dir: str | Path) -> TrainConfig:
 def open_checkpoints(run_dir: str | Path, config: TrainConfig, create: bool = True
                      ) -> Checkpoints:
     """The orbax checkpoints of a run folder (close it, or use it as a context manager);
-    `create=False` to read them without making the folder."""
+    `create=False` to read them without making the folder. Each checkpoint covers the level
+    snapshot of its step (the digests of its files are recorded and checked)."""
     return Checkpoints(Path(run_dir) / CHECKPOINT_DIR, keep=config.run.keep_checkpoints,
-                       create=create)
+                       create=create, covers=[f"{LEVELS_DIR}/{name}" for name in SNAPSHOT_FILES])
 
 
 def config_hash(config: TrainConfig) -> str:
@@ -214,6 +217,6 @@ def load_policy(run_dir: str | Path, checkpoint: int | None = None) -> TrainedPo
 
 
 __all__ = ["CHECKPOINT_DIR", "CONFIG_FILE", "EVENTS_DIR", "LEVELS_DIR", "SEED_DIR_PREFIX",
-           "SET_ASIDE_DIR", "TrainedPolicy", "checkpoint_metadata", "config_hash",
+           "SET_ASIDE_DIR", "SNAPSHOT_FILES", "TrainedPolicy", "checkpoint_metadata", "config_hash",
            "create_run_dir", "folder_seed", "load_policy", "new_run_dir", "open_checkpoints",
            "read_run_config", "run_summary", "seed_dir", "split_seed_dir"]

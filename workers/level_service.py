@@ -30,9 +30,9 @@ from tabx.files import atomic_write_text
 from tabx.params import EnvParams
 from ued.config import UEDSection
 from ued.levels import LevelGenerator
+from ued.run_folder import SNAPSHOT_FILES
 
 SNAPSHOT_PATTERN = re.compile(r"^state-(\d+)\.json$")
-SNAPSHOT_FILES = ("buffer-{}.msgpack", "learnable-{}.msgpack", "state-{}.json")
 
 
 def buffer_config(ued: UEDSection) -> BufferConfig:
@@ -220,7 +220,7 @@ def snapshot_steps(folder: str | os.PathLike) -> list[int]:
         return []
     steps = []
     for path in folder.iterdir():
-        match = SNAPSHOT_PATTERN.match(path.name)
+        match = SNAPSHOT_PATTERN.fullmatch(path.name)
         if match:
             steps.append(int(match.group(1)))
     return sorted(steps)

@@ -24,9 +24,13 @@ scenario-format names (no path separators); an existing file is replaced only wi
 refused (loading by name would find the other file).
 
 The API only serves names, never paths: a page cannot make the server read an arbitrary file.
-Requests whose `Host` is not the server's own loopback address are refused (DNS rebinding), and
-POST bodies must be `application/json` (a cross-site form cannot post one without a preflight,
-which the server does not answer).
+A request needs exactly one `Host` header (two: 400) naming the server's own loopback address
+(another: 403, DNS rebinding); an absolute-form request URI (`POST http://host/api/save`) must
+name it too (400). Every request but GET and HEAD with an `Origin` other than the server's own
+page is refused (403) before anything else, and POST bodies must be `application/json` (a
+cross-site form cannot post one without a preflight, which the server does not answer).
+At most MAX_CONNECTIONS connections are served at once (one thread each); the next ones are
+answered 503 and closed at once.
 
 Request bodies are bounded before anything is read: a POST needs a `Content-Length` of plain
 digits (missing: 411, chunked: 411, negative or not a number: 400, over MAX_BODY: 413). A
@@ -87,6 +91,8 @@ MAX_BODY = 8 * 1024 * 1024
 MAX_QUERY_NAME = 201  # a composition UNITS_ZONES of two 100-character names
 CONTENT_LENGTH = re.compile(r"[0-9]{1,15}")
 SOCKET_TIMEOUT_S = 120  # a client that stops sending mid-request is dropped after this
+MAX_CONNECTIONS = 32  # a browser opens about 6 per host; the rest would be threads for nothing
+READ_METHODS = ("GET", "HEAD")
 GRID_DEFAULTS = {"spacing": 4.25, "margin": 0.0}  # the reference editor: 28 x 18 on 121 x 78
 CSP = ("default-src 'self'; img-src 'self' data:; style-src 'self' 'unsafe-inline'; "
        "script-src 'self'; connect-src 'self'; object-src 'none'; base-uri 'none'; "
@@ -278,7 +284,7 @@ class EditorApp:
             raise EditorError(400, "expected a JSON object")
         name, category = body.get("name"), body.get("category")
         overwrite = body.get("overwrite", False)
-        if not isinstance(name, str) or "/" in name or "\\" in name or not NAME_PATTERN.match(
+        if not isinstance(name, str) or "/" in name or "\\" in name or not NAME_PATTERN.fullmatch(
                 name):
             raise EditorError(400, "expected 1-100 characters from A-Z a-z 0-9 _ . -, starting "
                               "with a letter or digit (no path separators); got "
@@ -361,14 +367,28 @@ class _Handler(BaseHTTPRequestHandler):
         self._send(status, json.dumps(obj, allow_nan=False).encode("utf-8"),
                    "application/json; charset=utf-8")
 
-    def _host_ok(self) -> bool:
-        host = (self.headers.get("Host") or "").lower()
-        port = self.server.server_address[1]
-        return host in {f"127.0.0.1:{port}", f"localhost:{port}"}
+    def _refusal(self) -> EditorError | None:
+        """Why this request is not for this server, or None: Host, request URI, Origin."""
+        own = self.server.authorities
+        hosts = self.headers.get_all("Host") or []
+        if len(hosts) != 1:
+            return EditorError(400, f"expected exactly one Host header, got {len(hosts)}")
+        if hosts[0].strip().lower() not in own:
+            return EditorError(403, "unexpected Host header")
+        url = urlsplit(self.path)
+        if (url.scheme or url.netloc) and (url.scheme.lower() != "http"
+                                           or url.netloc.lower() not in own):
+            return EditorError(400, "the request URI names another host")
+        if self.command not in READ_METHODS:
+            origins = self.headers.get_all("Origin") or []
+            if any(o.strip().lower() not in {f"http://{a}" for a in own} for o in origins):
+                return EditorError(403, "requests from another origin may not change anything")
+        return None
 
     def _guarded(self, action) -> None:
-        if not self._host_ok():
-            self._json(403, EditorError(403, "unexpected Host header").payload())
+        refusal = self._refusal()
+        if refusal is not None:
+            self._json(refusal.status, refusal.payload())
             return
         try:
             action()
@@ -474,7 +494,7 @@ class _Handler(BaseHTTPRequestHandler):
 
     def _static(self, name: str) -> None:
         suffix = name[name.rfind("."):] if "." in name else ""
-        if not STATIC_NAME.match(name):
+        if not STATIC_NAME.fullmatch(name):
             raise EditorError(404, f"no such file: {name}")
         entry = resources.files("tabx.editor") / "static" / name
         if not entry.is_file():
@@ -488,15 +508,49 @@ class EditorServer(ThreadingHTTPServer):
     daemon_threads = True
     allow_reuse_address = True
 
-    def __init__(self, port: int = 0, app: EditorApp | None = None, verbose: bool = False
-                 ) -> None:
+    def __init__(self, port: int = 0, app: EditorApp | None = None, verbose: bool = False,
+                 max_connections: int = MAX_CONNECTIONS) -> None:
         self.app = app if app is not None else EditorApp()
         self.verbose = verbose
+        self._slots = threading.BoundedSemaphore(max_connections)
         super().__init__((HOST, port), _Handler)
+        port = self.server_address[1]
+        self.authorities = frozenset({f"127.0.0.1:{port}", f"localhost:{port}"})
 
     @property
     def url(self) -> str:
         return f"http://{HOST}:{self.server_address[1]}/"
+
+    def process_request(self, request: Any, client_address: Any) -> None:
+        """Serve the connection on a thread of its own if one of MAX_CONNECTIONS is free;
+        otherwise answer 503 and close it, without waiting."""
+        if not self._slots.acquire(blocking=False):
+            self._busy(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except BaseException:
+            self._slots.release()
+            raise
+
+    def process_request_thread(self, request: Any, client_address: Any) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self._slots.release()
+
+    def _busy(self, request: Any) -> None:
+        body = json.dumps(EditorError(503, "too many connections; try again").payload()).encode()
+        head = ("HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json; "
+                f"charset=utf-8\r\nContent-Length: {len(body)}\r\nRetry-After: 1\r\n"
+                "Connection: close\r\n\r\n").encode()
+        try:
+            request.settimeout(1.0)  # the accept loop never waits long on a slow client
+            request.sendall(head + body)
+        except OSError:
+            pass
+        finally:
+            self.shutdown_request(request)
 
 
 def make_server(port: int = 0, initial: Scenario | None = None, verbose: bool = False
@@ -505,5 +559,5 @@ def make_server(port: int = 0, initial: Scenario | None = None, verbose: bool = 
     return EditorServer(port, EditorApp(initial), verbose)
 
 
-__all__ = ["EditorApp", "EditorError", "EditorServer", "USER_FOLDERS", "make_server",
-           "units_info", "user_files"]
+__all__ = ["MAX_CONNECTIONS", "EditorApp", "EditorError", "EditorServer", "USER_FOLDERS",
+           "make_server", "units_info", "user_files"]

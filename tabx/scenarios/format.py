@@ -37,6 +37,8 @@ TEAMS = ("ally", "enemy")
 ZONE_TYPES = ("lava", "bush", "swamp")
 MAX_UNITS_PER_TEAM = 100  # far above any real scenario; guards against runaway files
 MAX_ZONES = 64
+# Always `fullmatch`: with `match`, `$` also matches before a final newline ("name\n"). The
+# editor page uses the same pattern in JavaScript, where `$` ends the string.
 NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,99}$")
 MAX_DESCRIPTION = 4000  # characters of the free-text description
 MAX_JSON_DEPTH = 32  # nested arrays and objects; a scenario file nests 4 (an editor request 5)
@@ -672,7 +674,7 @@ def _parse(data: Any) -> Scenario:
     if d["format"] != FORMAT:
         raise ScenarioError(f"expected {FORMAT!r}, got {_describe(d['format'])}", "format")
     name = _string(d["name"], "name")
-    if not NAME_PATTERN.match(name):
+    if not NAME_PATTERN.fullmatch(name):
         raise ScenarioError("expected 1-100 characters from A-Z a-z 0-9 _ . -, starting with a "
                             f"letter or digit; got {_describe(name)}", "name")
     category = _choice(d["category"], CATEGORIES, "category")
