@@ -16,7 +16,6 @@ import hashlib
 import io
 import json
 import os
-import re
 import shutil
 import stat
 import subprocess
@@ -272,7 +271,8 @@ def test_a_damaged_checkpoint_or_edited_snapshot_falls_back(tmp_path, tiny_state
     covers = ["levels/state-{}.json"]
     with Checkpoints(run / "checkpoints", covers=covers) as checkpoints:
         for step in (1, 2):
-            (levels / f"state-{step}.json").write_text(json.dumps({"version": step}))
+            state = {"curriculum": {"method": "dr"}, "version": step}
+            (levels / f"state-{step}.json").write_text(json.dumps(state))
             checkpoints.save(step, tiny_state, jax.random.key(step))
     pristine = tmp_path / "pristine"
     os.rename(run, pristine)
@@ -283,22 +283,26 @@ def test_a_damaged_checkpoint_or_edited_snapshot_falls_back(tmp_path, tiny_state
         data[len(data) // 10] ^= 0x04
         path.write_bytes(bytes(data))
 
-    def edit_state(r: Path) -> None:
-        (r / "levels" / "state-2.json").write_text(json.dumps({"version": 3}))
+    def edit_state(r: Path) -> None:  # still a valid state file
+        (r / "levels" / "state-2.json").write_text(json.dumps({"curriculum": {"method": "dr"},
+                                                              "version": 3}))
 
-    for harm, fragment in ((flip_array, "damaged: array|cannot be restored"),
-                           (edit_state, "state-2.json changed after the checkpoint was saved")):
+    for harm, fragment in (
+            (flip_array, f"{run / 'checkpoints' / '2'}: cannot be restored"),
+            (edit_state, f"{run / 'levels' / 'state-2.json'}: changed after checkpoint 2 was "
+                         f"saved")):
         shutil.copytree(pristine, run)
         harm(run)
         out = io.StringIO()
         with Checkpoints(run / "checkpoints", covers=covers) as checkpoints:
-            restored = restore_intact(run, checkpoints, tiny_state, snapshots=False,
+            restored = restore_intact(run, checkpoints, tiny_state, snapshots=True,
                                       needs_buffer=False, stream=out)
         assert restored is not None and restored[2] == 1
         lines = out.getvalue().splitlines()
-        assert lines[0].startswith(f"resume: step 2 is damaged: {run / 'checkpoints' / '2'}: ")
-        assert re.search(fragment, lines[0]) and lines[1].startswith("resume: from step 1; ")
+        assert lines[0].startswith(f"resume: step 2 is damaged: {fragment}"), lines
+        assert lines[1].startswith("resume: from step 1; ") and len(lines) == 2, lines
         assert not (run / "checkpoints" / "2").exists()
+        assert not (run / "levels" / "state-2.json").exists()
         shutil.rmtree(run)
     # A policy needs only the parameters: an edited state file does not stop `tabx eval`.
     edit_state(pristine)

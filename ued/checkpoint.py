@@ -16,8 +16,9 @@ INTEGRITY_KEY, which `metadata` leaves out): the CRC-32 of every array as saved 
 bytes; a checksum made for damage, several times faster than SHA-256 on a Q-learner's GB replay
 buffer), and the SHA-256 of each file the checkpoint goes with (`covers`: the level snapshot of
 the same step, written just before it). `restore` and `restore_params` recompute the digests
-of what they read, and a checkpoint whose arrays or files differ is a `CheckpointError` naming
-it, like one that cannot be read. Checkpoints saved without digests restore unchecked.
+of what they read: an array that differs is a `CheckpointError` naming the checkpoint, like
+one that cannot be read. `file_problem` says which covered file changed (resume's snapshot
+check asks it). Checkpoints saved without digests restore unchecked.
 """
 
 from __future__ import annotations
@@ -127,32 +128,39 @@ class Checkpoints:
         names = [pattern.format(int(update)) for pattern in self.covers]
         return [(name, self.directory.parent / name) for name in names]
 
-    def verify(self, update: int, item: Any, files: bool = True) -> None:
-        """CheckpointError unless every array of `item` (what was read of checkpoint
-        `update`: all of it or a part) and, with `files`, every covered file that still
-        exists has the digest recorded when the checkpoint was saved. A missing file is left
-        to the reader of that file to report."""
+    def _recorded(self, update: int) -> dict[str, Any]:
+        """What `save` recorded of checkpoint `update` ({} for one saved without it)."""
         try:
             recorded = self._custom_metadata(update).get(INTEGRITY_KEY)
         except Exception:  # noqa: BLE001 (a damaged _CHECKPOINT_METADATA: nothing recorded)
             recorded = None
-        if not isinstance(recorded, dict):
+        return recorded if isinstance(recorded, dict) else {}
+
+    def verify(self, update: int, item: Any) -> None:
+        """CheckpointError unless every array of `item` (what was read of checkpoint
+        `update`: all of it or a part) has the CRC-32 recorded when it was saved."""
+        arrays = self._recorded(update).get("arrays")
+        if not isinstance(arrays, dict):
             return  # saved without digests
-        where = self.directory / str(update)
-        arrays = recorded.get("arrays") or {}
         for name, digest in array_digests(item).items():
             if arrays.get(name) != digest:
                 what = "differs from" if name in arrays else "is missing from"
-                raise CheckpointError(f"{where}: damaged: array {name} {what} the digest "
-                                      f"recorded when the checkpoint was saved")
-        if not files:
-            return
-        kept = recorded.get("files") or {}
+                raise CheckpointError(f"{self.directory / str(update)}: cannot be restored "
+                                      f"(damaged: array {name} {what} the digest recorded "
+                                      f"when the checkpoint was saved)")
+
+    def file_problem(self, update: int) -> str | None:
+        """What changed in the files checkpoint `update` covers since it was saved (one whose
+        SHA-256 differs from the recorded one), or None. A missing file is left to the
+        reader of that file to report."""
+        files = self._recorded(update).get("files")
+        if not isinstance(files, dict):
+            return None
         for name, path in self._covered(update):
-            if name in kept and path.is_file() and file_digest(path) != kept[name]:
-                raise CheckpointError(f"{where}: damaged: {path} changed after the "
-                                      f"checkpoint was saved (its sha256 differs from the "
-                                      f"one recorded)")
+            if name in files and path.is_file() and file_digest(path) != files[name]:
+                return (f"{path}: changed after checkpoint {update} was saved (its SHA-256 "
+                        f"differs from the one the checkpoint recorded)")
+        return None
 
     def restore(self, template: Any, update: int | None = None,
                 key_template: jax.Array | None = None) -> tuple[Any, jax.Array, int]:
@@ -200,7 +208,7 @@ class Checkpoints:
         except Exception as err:  # noqa: BLE001 (orbax and TensorStore raise many kinds)
             raise CheckpointError(f"{self.directory / str(update)}: cannot be restored "
                                   f"({gist(err)})") from err
-        self.verify(update, item, files=False)  # a policy needs its parameters, not levels
+        self.verify(update, item)
         params = jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), item["train_state"]["params"])
         return params, int(update)
 

@@ -3,10 +3,11 @@
 A step can be resumed when its orbax checkpoint restores and, for a UED run, its level snapshot
 reads back: `state-<step>.json` parses, and `buffer-<step>.msgpack` / `learnable-<step>.msgpack`
 pass the level-buffer format's checks (magic, version, SHA-256, every length, dtype and shape).
-`restore_intact` tries the steps newest first, says in one line what is wrong with each step it
-passes over, and moves the files of every step newer than the one it resumes from to
-`RUN_DIR/set-aside/<time>/` (never deletes them), so that the continued run does not mix with
-them. `check_run` reports every step without changing anything (`tabx runs check`).
+The checkpoint of a step records the SHA-256 of its snapshot's files: one edited since is
+damaged too. `restore_intact` tries the steps newest first, says in one line what is wrong with
+each step it passes over, and moves the files of every step newer than the one it resumes from
+to `RUN_DIR/set-aside/<time>/` (never deletes them), so that the continued run does not mix
+with them. `check_run` reports every step without changing anything (`tabx runs check`).
 """
 
 from __future__ import annotations
@@ -70,8 +71,10 @@ def state_problem(state: Any) -> str | None:
     return None
 
 
-def snapshot_problem(levels_dir: Path, step: int, needs_buffer: bool) -> str | None:
-    """What keeps the level snapshot of `step` from reading back, or None."""
+def snapshot_problem(levels_dir: Path, step: int, needs_buffer: bool,
+                     checkpoints: Checkpoints | None = None) -> str | None:
+    """What keeps the level snapshot of `step` from reading back, or None; with `checkpoints`,
+    also a snapshot file changed since checkpoint `step` recorded its digest."""
     state = levels_dir / f"state-{step}.json"
     if not state.is_file():
         return f"{state}: missing (the snapshot of step {step} is incomplete)"
@@ -91,7 +94,7 @@ def snapshot_problem(levels_dir: Path, step: int, needs_buffer: bool) -> str | N
             LevelBuffer.load(path)
         except (BufferFileError, OSError) as err:
             return str(err).splitlines()[0]
-    return None
+    return checkpoints.file_problem(step) if checkpoints is not None else None
 
 
 def checkpoint_problem(checkpoints: Checkpoints, template: Any, step: int,
@@ -119,7 +122,8 @@ def restore_intact(run_dir: Path, checkpoints: Checkpoints, template: Any, *,
     levels_dir = run_dir / LEVELS_DIR
     problems = []
     for step in reversed(steps):
-        problem = snapshot_problem(levels_dir, step, needs_buffer) if snapshots else None
+        problem = (snapshot_problem(levels_dir, step, needs_buffer, checkpoints) if snapshots
+                   else None)
         restored = None
         if problem is None:
             problem, restored = checkpoint_problem(checkpoints, template, step, key_template)
@@ -178,7 +182,8 @@ def check_run(run_dir: Path, checkpoints: Checkpoints, template: Any, *, snapsho
     """Every checkpointed step of a run folder, oldest first, checked as resume would."""
     levels_dir = run_dir / LEVELS_DIR
     return [StepCheck(step, checkpoint_problem(checkpoints, template, step, key_template)[0],
-                      snapshot_problem(levels_dir, step, needs_buffer) if snapshots else None)
+                      snapshot_problem(levels_dir, step, needs_buffer, checkpoints)
+                      if snapshots else None)
             for step in checkpoints.all()]
 
 
