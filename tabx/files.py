@@ -3,20 +3,28 @@ a full disk never leaves a half-written scenario, buffer or config behind (temp 
 folder, fsync, rename, fsync of the folder).
 
 The rename only ever lands on a missing or regular file. A symlink keeps its link: its target is
-replaced. A character device, pipe or socket (`/dev/stdout`, `/dev/null`, a FIFO, `>(cmd)`) is
-written through, as any tool writes to it; a directory or block device is refused. Errors on that
-path are `OutputError`s, one line naming the path."""
+replaced. One of this process's open files by name (`/dev/stdout`, `/dev/fd/3`, `>(cmd)`) is
+written to at its place in the stream, after what Python has buffered for it; a character
+device, pipe or socket by name (`/dev/null`, a FIFO) is written through, as any tool writes to
+it; a directory or block device is refused. Errors on those paths are `OutputError`s, one line
+naming the path."""
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import stat
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any
 
 from tabx.errors import UserError
+
+# A name for one of this process's open files: /dev/stdout, /dev/fd/N, /proc/self/fd/N.
+_OPEN_FILE = re.compile(r"/dev/(stdout|stderr)|/dev/fd/(\d+)|/proc/(self|\d+)/fd/(\d+)")
+_STD_FDS = {"stdout": 1, "stderr": 2}
 
 
 class OutputError(UserError):
@@ -28,6 +36,10 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
 
     Special files are written through (see the module docstring); returns `path`."""
     path = Path(path)
+    fd = _open_file(path)
+    if fd is not None:
+        _write_fd(path, fd, data)
+        return path
     try:
         mode = os.stat(path).st_mode  # follows symlinks: what a write would land on
     except FileNotFoundError:
@@ -40,17 +52,46 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
             return path
         kind = "a directory" if stat.S_ISDIR(mode) else "not a regular file"
         raise OutputError(f"cannot write {path}: it is {kind}")
-    target = path
-    if path.is_symlink():
-        real = Path(os.path.realpath(path))
-        if real.parts[1:2] == ("proc",):
-            # /dev/stdout and /dev/fd/N resolve through /proc to an open file: replacing that
-            # path would swap the file under the process holding it; write into it instead.
-            _write_through(path, data)
-            return path
-        target = real  # replace the link's target; the link stays a link
-    _replace(target, data)
+    # A link's target is replaced; the link stays a link.
+    _replace(Path(os.path.realpath(path)) if path.is_symlink() else path, data)
     return path
+
+
+def _open_file(path: Path) -> int | None:
+    """The descriptor `path` names, following its links (`/dev/stdout` -> /proc/self/fd/1),
+    when it is one of this process's open files; None otherwise."""
+    for _ in range(40):  # the kernel's own limit on a chain of links
+        found = _OPEN_FILE.fullmatch(str(path))
+        if found:
+            std, fd, pid, proc_fd = found.groups()
+            if pid is not None and pid not in ("self", str(os.getpid())):
+                return None
+            number = _STD_FDS[std] if std else int(fd if fd is not None else proc_fd)
+            try:
+                os.fstat(number)
+            except OSError:
+                return None
+            return number
+        if not path.is_symlink():
+            return None
+        path = path.parent / os.readlink(path)
+    return None
+
+
+def _write_fd(path: Path, fd: int, data: bytes) -> None:
+    """Write at the stream's place: what Python buffered for it first, then `data`."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            if stream is not None and stream.fileno() == fd:
+                stream.flush()
+        except (AttributeError, OSError, ValueError):  # replaced or closed streams
+            pass
+    try:
+        view = memoryview(data)
+        while view:
+            view = view[os.write(fd, view):]
+    except OSError as err:
+        raise OutputError(f"cannot write {path}: {err.strerror or err}") from None
 
 
 def _write_through(path: Path, data: bytes) -> None:

@@ -133,6 +133,26 @@ def test_a_device_output_is_written_through_not_replaced(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["null"]
 
 
+def test_an_open_file_by_name_is_written_at_its_place(tmp_path):
+    """`--json /dev/stdout > out.txt` or `/dev/fd/N`: the bytes follow what the stream holds,
+    in the same file (a rename would swap the file under the shell's descriptor)."""
+    read_end, write_end = os.pipe()
+    try:
+        for name in (f"/dev/fd/{write_end}", f"/proc/self/fd/{write_end}"):
+            atomic_write_bytes(name, b"through the pipe")
+            assert os.read(read_end, 100) == b"through the pipe"
+    finally:
+        os.close(read_end)
+        os.close(write_end)
+    out = tmp_path / "out.txt"
+    with open(out, "wb") as stream:
+        stream.write(b"table\n")
+        stream.flush()
+        inode = os.fstat(stream.fileno()).st_ino
+        atomic_write_bytes(f"/dev/fd/{stream.fileno()}", b"{}\n")
+    assert out.read_bytes() == b"table\n{}\n" and out.stat().st_ino == inode
+
+
 @pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full")
 def test_a_full_device_and_a_folder_are_one_line(tmp_path, buffer_file, capsys):
     full = tmp_path / "full"
