@@ -335,11 +335,11 @@ def test_a_damaged_checkpoint_or_edited_snapshot_falls_back(tmp_path, tiny_state
 # --- nothing touches a device at import --------------------------------------------------------
 
 # JaxMARL builds arrays when imported; the adapters that import it inherit that.
-IMPORTS_JAXMARL = ("tabx.compat.jaxmarl", "tabx.peers.smax")
+IMPORTS_JAXMARL = ("tabx.compat.jaxmarl", "tabx_bench.peers.smax")
 IMPORT_ALL = f"""
 import importlib, pkgutil, resource, sys
 failed = []
-for package in ("tabx", "level_buffer", "ued", "workers", "tabx_ued"):
+for package in ("tabx", "tabx_bench", "level_buffer", "ued", "workers", "tabx_ued"):
     names = [package] + [m.name for m in pkgutil.walk_packages(
         importlib.import_module(package).__path__, package + ".", onerror=failed.append)]
     for name in names:
