@@ -4,10 +4,10 @@
     tabx rollout --ally RUN_DIR                  a trained policy (ued.evaluate.load_policy_team)
     tabx buffer ...                                               level_buffer.cli
     tabx levels sample, tabx plot, tabx bench train               ued
-    tabx train, tabx eval                                         tabx_ued.run_commands
+    tabx train, tabx eval                                         tabx_ued.train_eval_commands
     tabx eval payoff                                              ued.payoff
     tabx analyse value-error                                      ued.value_error
-    tabx runs status | buffer                                     tabx_ued.runs_commands
+    tabx runs status | buffer | check | show                      tabx_ued.run_folder_commands
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import sys
 
 from level_buffer import cli as buffer_cli
 from tabx import cli as simulator_cli
-from tabx_ued import run_commands, runs_commands
+from tabx_ued import run_folder_commands, train_eval_commands
 from ued import levels_cli, payoff, plot, value_error
 from ued.evaluate import load_policy_team
 from ued.learners.bench import add_train_bench
@@ -28,8 +28,8 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     simulator_cli.add_simulator_commands(subparsers, bench_extra=[add_train_bench, add_ued_bench],
                                          policy_loader=load_policy_team)
     buffer_cli.add_parser(subparsers)
-    run_commands.add_parser(subparsers)
-    runs_commands.add_parser(subparsers)
+    train_eval_commands.add_parser(subparsers)
+    run_folder_commands.add_parser(subparsers)
     levels_cli.add_parser(subparsers)
     plot.add_parser(subparsers)
     value_error.add_parser(subparsers)

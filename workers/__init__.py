@@ -1,3 +1,3 @@
 """Who runs what, where: the driver interface (`workers.driver`), the local driver
-(`workers.local`), the workers it wires (LevelService, Learner, Explorer, Evaluator) and
+(`workers.local`), the workers it wires (LevelService, LearnerWorker, Explorer, Evaluator) and
 `workers.train.train`, the library entry of `tabx train`."""
