@@ -1,7 +1,7 @@
 """`TabxEnv`: the TABX battle as pure functions over (EnvState, EnvParams), array API.
 
-One step, in order (TABX_REFERENCE.md section 4, with the differences listed in
-docs/differences.md; the level's profile (`tabx.profiles`) restores the reference's choices):
+One step, in order (the reference's, with the differences listed in docs/differences.md;
+the level's profile (`tabx.profiles`) restores the reference's choices):
 1. motion: Euler with the velocity set by the previous action, wall damage and clipping,
    one simultaneous collision pass, clipping again;
 2. actions of every unit slot: moves set the next velocity, turns rotate now, ATTACK hits the

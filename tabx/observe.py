@@ -1,6 +1,6 @@
 """Observations, the global state and the action mask.
 
-Per-agent observation, same content and order as the reference (TABX_REFERENCE.md section 3):
+Per-agent observation, same content and order as the reference (docs/differences.md):
   own unit (14): health, health ratio, x, y, heading, attack range, damage, cooldown elapsed,
       cooldown ratio, radius, mass, sight angle, alive, speed;
   each other unit (16, in viewer-relative cyclic order i+1 .. N-1, 0 .. i-1; zeros where not

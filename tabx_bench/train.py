@@ -104,15 +104,16 @@ def _run_train_bench(algorithm: str, scenario: str, opponent: str, num_envs: int
     from tabx.compile_counter import CompileCounter
     from tabx.params import repeat_level
     from tabx.scenarios import config_for, load_named
-    from ued.config import Q_ALGORITHMS, Q_LEARNER_SETTINGS, PPOConfig, QLearningConfig
+    from ued.config import Q_LEARNER_SETTINGS, LearnerConfig, QLearningConfig
     from ued.learners import make_learner
+    from ued.registry import learner_entry
 
     level_scenario = load_named(scenario)
     env_config = config_for([level_scenario])
     levels = jax.tree.map(jnp.array, repeat_level(level_scenario.to_level(env_config), num_envs))
-    ppo = PPOConfig(num_envs=num_envs, num_steps=num_steps)
+    ppo = LearnerConfig(num_envs=num_envs, num_steps=num_steps)
     q = None
-    if algorithm in Q_ALGORITHMS:
+    if learner_entry(algorithm).settings == "qlearning":
         # The paper's Q-learning settings, learning from the first update on (every timed
         # update samples and takes its gradient steps once the buffer holds a batch).
         ppo = dataclasses.replace(ppo, **Q_LEARNER_SETTINGS)
@@ -152,10 +153,10 @@ def _run_train_bench(algorithm: str, scenario: str, opponent: str, num_envs: int
 def bench_train(args: argparse.Namespace) -> int:
     from tabx.errors import UserError
     from tabx_bench.simulator import machine_summary, write_results
-    from ued.config import Q_ALGORITHMS
+    from ued.registry import learner_entry
 
     variant = "reference-like" if args.reference_like else "ours"
-    if args.reference_like and set(args.algorithms) & set(Q_ALGORITHMS):
+    if args.reference_like and any(not learner_entry(a).ppo_settings for a in args.algorithms):
         raise UserError("--reference-like restructures the PPO learners' training: give "
                         "--algorithms among mappo, ippo")
     print(f"# tabx bench train on {machine_summary()}; {args.scenario} vs {args.opponent}, "
@@ -177,7 +178,7 @@ def bench_train(args: argparse.Namespace) -> int:
 
 
 def _algorithms(text: str) -> list[str]:
-    from ued.learners import LEARNERS
+    from ued.registry import LEARNERS
 
     names = [t for t in text.split(",") if t]
     unknown = [n for n in names if n not in LEARNERS]

@@ -44,7 +44,7 @@ from tabx.files import atomic_write_text
 from tabx_bench.arguments import int_at_least, int_list
 from ued.config import ConfigError, TrainConfig, load_config
 from ued.experiment import learner_for
-from workers.learner import Learner
+from workers.learner import LearnerWorker
 from workers.ued_step import UEDRun
 
 DEFAULT_CONFIG = "ued/quickstart"  # a shipped config (ued.config_files)
@@ -125,7 +125,7 @@ class LocalStepper:
         self.config = config
         self.run, ppo = UEDRun.local(config)
         self.key, k_init = jax.random.split(jax.random.key(config.seed))
-        self.learner = Learner(ppo, ppo.init(k_init))
+        self.learner = LearnerWorker(ppo, ppo.init(k_init))
         self.index = 0
 
     def step(self) -> Any:

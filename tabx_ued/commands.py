@@ -7,11 +7,11 @@
     tabx buffer ...                                              level_buffer.cli
     tabx levels sample                                           ued.levels_cli
     tabx plot                                                    ued.plot
-    tabx train, tabx eval                                        tabx_ued.run_commands
+    tabx train, tabx eval                                        tabx_ued.train_eval_commands
     tabx eval heuristics                                         tabx_ued.heuristics
     tabx eval payoff                                             ued.payoff
     tabx analyse value-error                                     ued.value_error
-    tabx runs status | buffer                                    tabx_ued.runs_commands
+    tabx runs status | buffer                                    tabx_ued.run_folder_commands
 """
 
 from __future__ import annotations
@@ -20,7 +20,14 @@ import argparse
 
 from level_buffer import cli as buffer_cli
 from tabx_bench import cli as bench_cli
-from tabx_ued import editor, heuristics, rollout, run_commands, runs_commands, scenarios
+from tabx_ued import (
+    editor,
+    heuristics,
+    rollout,
+    run_folder_commands,
+    scenarios,
+    train_eval_commands,
+)
 from ued import levels_cli, payoff, plot, value_error
 
 
@@ -31,8 +38,8 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     bench_cli.add_parser(subparsers)
     editor.add_parser(subparsers)
     buffer_cli.add_parser(subparsers)
-    run_commands.add_parser(subparsers)
-    runs_commands.add_parser(subparsers)
+    train_eval_commands.add_parser(subparsers)
+    run_folder_commands.add_parser(subparsers)
     levels_cli.add_parser(subparsers)
     plot.add_parser(subparsers)
     value_error.add_parser(subparsers)

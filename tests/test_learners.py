@@ -27,7 +27,7 @@ from test_learners_helpers import (
 
 from tabx import constants as C
 from tabx.params import EnvConfig, repeat_level, stack_levels
-from ued.config import ConfigError, PPOConfig, apply_overrides, config_from_dict, load_config
+from ued.config import ConfigError, LearnerConfig, apply_overrides, config_from_dict, load_config
 from ued.learners import make_learner
 from ued.learners import networks as nw
 from ued.learners.ippo import IPPO
@@ -248,7 +248,7 @@ def test_bfloat16_training_sequences_replay_the_bfloat16_steps_and_track_float32
 
 @pytest.mark.parametrize("dtype", ["bfloat16", "float32"])
 def test_the_update_program_multiplies_in_the_configured_matmul_dtype(dtype):
-    ppo = PPOConfig(num_envs=4, num_steps=8, hidden_dim=16, num_minibatches=2,
+    ppo = LearnerConfig(num_envs=4, num_steps=8, hidden_dim=16, num_minibatches=2,
                     matmul_dtype=dtype)
     learner = make_learner("ippo", ENV_CONFIG, ppo, "ally", "random", cached=False)
     state = learner.init(jax.random.key(0))
@@ -366,7 +366,7 @@ def test_an_update_split_over_two_devices_equals_the_one_device_update(algorithm
     shards' float32 sums add in another order (its docstring derives the bound)."""
     results = []
     for devices in (1, 2):
-        ppo = PPOConfig(num_envs=4, num_steps=16, hidden_dim=16, num_minibatches=1,
+        ppo = LearnerConfig(num_envs=4, num_steps=16, hidden_dim=16, num_minibatches=1,
                         update_epochs=2, num_devices=devices)
         learner = make_learner(algorithm, ENV_CONFIG, ppo, "ally", "random", cached=False)
         assert len(learner.learner_devices(4)) == devices
@@ -408,7 +408,7 @@ def test_scoring_split_over_two_devices_equals_one_device_scoring():
     (`assert_values_close`)."""
     results = []
     for devices in (1, 2):
-        ppo = PPOConfig(num_envs=4, num_steps=16, hidden_dim=16, num_minibatches=2,
+        ppo = LearnerConfig(num_envs=4, num_steps=16, hidden_dim=16, num_minibatches=2,
                         num_devices=devices)
         learner = make_learner("ippo", ENV_CONFIG, ppo, "ally", "random", cached=False)
         params = learner.init(jax.random.key(0)).params
@@ -429,7 +429,7 @@ def test_scoring_split_over_two_devices_equals_one_device_scoring():
 
 def test_devices_are_chosen_to_split_the_envs_evenly():
     def devices(**ppo):
-        learner = make_learner("ippo", ENV_CONFIG, PPOConfig(**ppo), "ally", "random",
+        learner = make_learner("ippo", ENV_CONFIG, LearnerConfig(**ppo), "ally", "random",
                                cached=False)
         return len(learner.learner_devices(ppo["num_envs"]))
 
@@ -439,10 +439,10 @@ def test_devices_are_chosen_to_split_the_envs_evenly():
     with pytest.raises(ValueError, match="learner.num_devices: 3 devices asked for"):
         devices(num_envs=12, num_minibatches=2, num_devices=3)
     # Scoring takes any batch: as many devices as divide it, at most the configured number.
-    learner = make_learner("ippo", ENV_CONFIG, PPOConfig(num_envs=8, num_minibatches=2,
+    learner = make_learner("ippo", ENV_CONFIG, LearnerConfig(num_envs=8, num_minibatches=2,
                                                          num_devices=1), "ally", "random")
     assert len(learner.learner_devices(6, minibatches=1, strict=False)) == 1
-    learner = make_learner("ippo", ENV_CONFIG, PPOConfig(num_envs=8, num_minibatches=2),
+    learner = make_learner("ippo", ENV_CONFIG, LearnerConfig(num_envs=8, num_minibatches=2),
                            "ally", "random")
     assert len(learner.learner_devices(6, minibatches=1, strict=False)) == 2
     assert len(learner.learner_devices(5, minibatches=1, strict=False)) == 1
@@ -464,7 +464,7 @@ def test_learner_plays_the_enemy_team():
 
 
 def test_config_defaults_are_the_papers():
-    ppo = PPOConfig()
+    ppo = LearnerConfig()
     assert (ppo.lr, ppo.hidden_dim, ppo.gamma, ppo.gae_lambda, ppo.clip_eps, ppo.ent_coef,
             ppo.vf_coef, ppo.update_epochs, ppo.num_envs) == (
         4e-3, 128, 0.99, 0.95, 0.05, 0.01, 0.5, 4, 128)

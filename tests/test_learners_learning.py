@@ -15,7 +15,7 @@ import pytest
 from test_learners_helpers import learning_duel
 
 from tabx.params import repeat_level
-from ued.config import PPOConfig
+from ued.config import LearnerConfig
 from ued.learners import make_learner
 
 
@@ -24,7 +24,7 @@ def test_learns_two_archers_against_a_farmer(algorithm, optimizing_compiler):
     config, level = learning_duel()
     num_envs, num_steps, updates = 64, 64, 40
     levels = jax.tree.map(jnp.asarray, repeat_level(level, num_envs))
-    ppo = PPOConfig(num_envs=num_envs, num_steps=num_steps, hidden_dim=64,
+    ppo = LearnerConfig(num_envs=num_envs, num_steps=num_steps, hidden_dim=64,
                     total_timesteps=num_envs * num_steps * updates)
     learner = make_learner(algorithm, config, ppo, team="ally", opponent="random")
     state = learner.init(jax.random.key(0))

@@ -24,7 +24,7 @@ from tabx.params import repeat_level
 from ued.config import (
     Q_LEARNER_SETTINGS,
     ConfigError,
-    PPOConfig,
+    LearnerConfig,
     QLearningConfig,
     apply_overrides,
     config_from_dict,
@@ -54,7 +54,7 @@ def tiny_q_config(algorithm: str, tmp_dir: str = "runs", overrides: dict | None 
 @settings(max_examples=20, deadline=None)
 @given(agents=st.integers(1, 6), seed=st.integers(0, 2**31 - 1))
 def test_vdn_is_the_sum_of_the_agent_values(agents, seed):
-    learner = make_learner("vdn", ENV_CONFIG, PPOConfig(num_envs=4, num_steps=8, hidden_dim=8),
+    learner = make_learner("vdn", ENV_CONFIG, LearnerConfig(num_envs=4, num_steps=8, hidden_dim=8),
                            q=QLearningConfig(buffer_size=8, batch_size=4))
     q = jax.random.normal(jax.random.key(seed), (5, 3, agents)) * 10
     np.testing.assert_allclose(learner.mix(None, q, None), q.sum(-1),
@@ -109,7 +109,7 @@ def test_td_loss_equals_a_step_by_step_double_q_computation(algorithm):
     from ued.learners.qlearning import Trajectory, qnet_sequence
 
     learner = make_learner(algorithm, ENV_CONFIG,
-                           PPOConfig(num_envs=4, num_steps=6, hidden_dim=8, gamma=0.9,
+                           LearnerConfig(num_envs=4, num_steps=6, hidden_dim=8, gamma=0.9,
                                      matmul_dtype="float32"),
                            q=QLearningConfig(buffer_size=8, batch_size=4, reward_scale=2.0))
     keys = jax.random.split(jax.random.key(7), 9)
@@ -297,7 +297,7 @@ def test_learns_two_archers_against_a_farmer(algorithm):
     config, level = learning_duel()
     num_envs, num_steps, updates = 32, 64, 40
     levels = jax.tree.map(jnp.asarray, repeat_level(level, num_envs))
-    ppo = PPOConfig(num_envs=num_envs, num_steps=num_steps, hidden_dim=64, lr=3e-3,
+    ppo = LearnerConfig(num_envs=num_envs, num_steps=num_steps, hidden_dim=64, lr=3e-3,
                     anneal_lr=False, max_grad_norm=10.0, adam_eps=1e-8, update_epochs=16,
                     total_timesteps=num_envs * num_steps * updates)
     q = QLearningConfig(buffer_size=num_envs * 8, batch_size=32, learning_starts=0,

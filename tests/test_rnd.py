@@ -13,7 +13,7 @@ import pytest
 from test_learners_helpers import duel_level, tiny_config, tiny_levels
 
 from tabx.params import repeat_level
-from ued.config import ConfigError, PPOConfig, config_from_dict
+from ued.config import ConfigError, LearnerConfig, config_from_dict
 from ued.experiment import learner_for
 from ued.learners.ppo import Transition, gae
 from ued.learners.rnd import MAPPORND, prediction_error
@@ -22,7 +22,7 @@ RND = {"algorithm": "mappo_rnd"}
 
 
 def test_rnd_defaults_are_the_papers():
-    ppo = PPOConfig()
+    ppo = LearnerConfig()
     assert (ppo.rnd_hidden_dim, ppo.rnd_output_dim, ppo.rnd_layers, ppo.rnd_lr,
             ppo.rnd_gae_coef, ppo.rnd_reward_coef, ppo.rnd_loss_coef,
             ppo.rnd_update_epochs) == (128, 256, 3, 3e-4, 0.01, 0.5, 0.01, 1)

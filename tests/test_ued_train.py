@@ -20,7 +20,7 @@ from tabx.compile_counter import CompileCounter
 from ued.config import ConfigError, config_from_dict
 from ued.curricula import ACCEL, PLR, SFL, Branch, DomainRandomization, make_curriculum
 from ued.run_folder import LEVELS_DIR
-from workers.learner import Learner
+from workers.learner import LearnerWorker
 from workers.level_service import snapshot_steps
 from workers.train import train
 from workers.ued_step import UEDRun
@@ -105,7 +105,7 @@ def ued_config(method: str, **overrides):
     return tiny_config(**base)
 
 
-def params_of(learner: Learner):
+def params_of(learner: LearnerWorker):
     return jax.tree.map(np.asarray, learner.params)
 
 
@@ -118,7 +118,7 @@ def trees_equal(a, b) -> bool:
                                                 ("dr", True)])
 def test_gradient_on_new_levels_only_where_the_method_says(method, grad_on_new):
     run, ppo = UEDRun.local(ued_config(method))
-    learner = Learner(ppo, ppo.init(jax.random.key(0)))
+    learner = LearnerWorker(ppo, ppo.init(jax.random.key(0)))
     before = params_of(learner)
     branch, metrics, levels = run.step(learner, 0, jax.random.key(1))
     assert branch == Branch.NEW  # an empty buffer is below its minimum fill

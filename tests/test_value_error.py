@@ -22,7 +22,7 @@ from test_train_cli import run_cli
 
 from tabx import constants as C
 from ued.checkpoint import Checkpoints
-from ued.config import PPOConfig
+from ued.config import LearnerConfig
 from ued.experiment import learner_for
 from ued.learners.mappo import MAPPO
 from ued.run_folder import CHECKPOINT_DIR, CONFIG_FILE
@@ -42,7 +42,7 @@ class IdleWithTrueValue(MAPPO):
 
 
 def test_a_policy_valued_at_its_true_value_has_no_value_error():
-    learner = IdleWithTrueValue(ENV_CONFIG, PPOConfig(num_envs=4, hidden_dim=16, gamma=0.9),
+    learner = IdleWithTrueValue(ENV_CONFIG, LearnerConfig(num_envs=4, hidden_dim=16, gamma=0.9),
                                 "ally", "idle")
     params = learner.init(jax.random.key(0)).params
     level = learner.prepare_levels(duel_level())

@@ -187,6 +187,28 @@ class Checkpoints:
         state = jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), item["train_state"])
         return state, key, int(update)
 
+    def restore_saved(self, update: int) -> tuple[Any, jax.Array, int]:
+        """(train state, key, update) of checkpoint `update`, read with the structure, shapes
+        and dtypes it was saved with (its `_METADATA`) instead of a template: what checking a
+        run folder needs, without building the learner. Every array is read, so a checkpoint
+        that `restore` cannot read fails here too; the train state comes back as nested dicts
+        and lists of arrays on this process's first device."""
+        device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+        options = ocp.CheckpointManagerOptions(create=False, enable_async_checkpointing=False)
+        _quiet_abandoned_reads()
+        try:
+            with ocp.CheckpointManager(self.directory, options=options,
+                                       item_handlers=ocp.StandardCheckpointHandler()) as manager:
+                saved = manager.item_metadata(int(update)).tree
+                abstract = jax.tree.map(
+                    lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device), saved)
+                item = manager.restore(int(update), args=ocp.args.StandardRestore(abstract))
+        except Exception as err:  # noqa: BLE001 (orbax and TensorStore raise many kinds)
+            raise CheckpointError(f"{self.directory / str(update)}: cannot be restored "
+                                  f"({gist(err)})") from err
+        key = jax.random.wrap_key_data(jnp.asarray(np.asarray(item["key"], np.uint32)))
+        return item["train_state"], key, int(update)
+
     def restore_params(self, template: Any, update: int | None = None) -> tuple[Any, int]:
         """(parameters, update) of checkpoint `update` (default: the newest) without reading
         the rest of the train state (the optimiser state, a Q-learner's replay buffer of some

@@ -2,18 +2,21 @@
 
 A config has six sections and top-level keys (`seed`, or `seeds` for several):
 
-    algorithm: mappo          # mappo | ippo | mappo_rnd | iql | vdn | qmix
+    algorithm: mappo          # a learner of ued.registry: mappo, ippo, mappo_rnd, iql, vdn, qmix
     seed: 0                   # or seeds: [0, 1, 2]: several seeds in one program (PPO family)
     env:     {scenario, team, opponent, max_steps, profile}
-    learner: {PPO hyperparameters, num_envs, num_steps, total_timesteps}
+    learner: {num_envs, num_steps, total_timesteps, optimiser, PPO's and RND's own} (LearnerConfig)
     qlearning: {replay buffer, epsilon, target network, mixer}   (iql, vdn, qmix only)
     run:     {name, dir, checkpoint_every, keep_checkpoints, log_every}
     ray:     {enabled, address, explorers, staleness bounds, deterministic}  (RaySection)
-    ued:     {method, score, buffer and SFL settings, evaluation suites}   (UEDSection)
+    ued:     {method (a registered curriculum), score, buffer and SFL settings, evaluation suites}
     levels:  {free parameters and their ranges}                  (ued.levels.LevelSpace)
 
 Every field has a default (the paper's table "IPPO and MAPPO hyperparameters" and the
-reference's defaults, TABX_REFERENCE.md section 11), so a file only lists what differs.
+reference's defaults; docs/differences.md lists where we differ), so a file only lists what
+differs. Which learner and curriculum names exist, and which sections and fields each reads,
+is `ued.registry`'s.
+
 `key=value` overrides address a field as `section.field` (`learner.lr=1e-3`) or by its bare
 name when that is unambiguous (`lr=1e-3`); values are read as YAML. Unknown keys, wrong types
 and out-of-range values raise `ConfigError`, whose message names the file and the key.
@@ -37,12 +40,11 @@ from ued.config_files import resolve_config
 from ued.errors import ConfigError
 from ued.errors import check as _check
 from ued.levels import LevelSpace
+from ued.registry import CURRICULA, LEARNERS, learner_entry, learners_where
 from ued.yaml_reader import read_yaml
 
-PPO_ALGORITHMS = ("mappo", "ippo", "mappo_rnd")
-Q_ALGORITHMS = ("iql", "vdn", "qmix")  # ued.learners.qlearning
-ALGORITHMS = PPO_ALGORITHMS + Q_ALGORITHMS
-# `learner` fields only the PPO learners read: a Q-learner's config must leave them as they are.
+# `learner` fields only the PPO learners read (`LearnerEntry.ppo_settings`): another learner's
+# config must leave them as they are.
 PPO_ONLY_FIELDS = ("gae_lambda", "clip_eps", "clip_value", "ent_coef", "vf_coef",
                    "num_minibatches", "normalize_advantages")
 MATMUL_DTYPES = ("bfloat16", "float32")  # learner.matmul_dtype
@@ -81,8 +83,12 @@ class EnvSection:
 
 
 @dataclass(frozen=True)
-class PPOConfig:
-    """PPO hyperparameters (defaults: the paper's table, and the reference for the rest)."""
+class LearnerConfig:
+    """The `learner:` section, read by every learner: the batch (num_envs x num_steps), the
+    run's length, the optimiser, the network width and the devices; then the fields only the
+    PPO learners read (`PPO_ONLY_FIELDS`) and MAPPO+RND's (`rnd_*`). A learner's settings
+    beyond these have a section of their own (`qlearning:`, `ued.registry.LearnerEntry.settings`).
+    Defaults: the paper's table, and the reference for the rest."""
 
     num_envs: int = 128
     num_steps: int = 512  # rollout length per update
@@ -166,8 +172,8 @@ class QLearningConfig:
     """Settings of the Q-learners (iql, vdn, qmix) beyond the `learner` fields they share with
     PPO (num_envs, num_steps, total_timesteps, lr, anneal_lr, hidden_dim, gamma, max_grad_norm,
     adam_eps, update_epochs = gradient steps per update, matmul_dtype). Defaults: the paper's
-    table "IQL and QMIX Hyperparameters" and the reference for the rest (TABX_REFERENCE.md
-    section 11); the mixer fields are QMIX's."""
+    table "IQL and QMIX Hyperparameters" and the reference for the rest (docs/differences.md
+    lists where we differ); the mixer fields are QMIX's."""
 
     buffer_size: int = 5000  # trajectories kept (one per env per update, num_steps long)
     batch_size: int = 32  # trajectories per gradient step
@@ -210,7 +216,6 @@ class QLearningConfig:
                f"must be > 0, got {self.mixer_init_scale}")
 
 
-MIXER_FIELDS = ("mixer_embed_dim", "mixer_hidden_dim", "mixer_init_scale")
 # The paper's `learner` settings of the Q-learners (table "IQL and QMIX Hyperparameters"; the
 # reference's gradient clipping, RAdam epsilon and constant learning rate), where they differ
 # from PPO's defaults: configs/marl/{iql,vdn,qmix}_*.yaml and `tabx bench train` use them.
@@ -245,7 +250,6 @@ class RunSection:
                f"must be a plain folder name, got {self.name!r}")
 
 
-UED_METHODS = ("none", "dr", "plr", "robust_plr", "accel", "sfl")
 UED_SCORES = ("max_mc", "pvl")
 
 
@@ -258,7 +262,7 @@ class UEDSection:
     paper does not state (minimum fill 0.5, duplicate check, MaxMC, top-k 4, SFL settings).
     `method: none` trains on the scenarios of `env.scenario` as they are."""
 
-    method: str = "none"  # none | dr | plr | robust_plr | accel | sfl
+    method: str = "none"  # none, or a registered curriculum (ued.registry): dr, plr, ...
     score: str = "max_mc"  # max_mc | pvl: the regret estimate that ranks buffer levels
     buffer_size: int = 4000
     replay_prob: float = 0.8
@@ -284,8 +288,9 @@ class UEDSection:
         return self.method != "none"
 
     def validate(self, prefix: str = "ued") -> None:
-        _check(self.method in UED_METHODS, f"{prefix}.method",
-               f"must be one of {', '.join(UED_METHODS)}, got {self.method!r}")
+        methods = ("none", *CURRICULA)
+        _check(self.method in methods, f"{prefix}.method",
+               f"must be one of {', '.join(methods)}, got {self.method!r}")
         _check(self.score in UED_SCORES, f"{prefix}.score",
                f"must be one of {', '.join(UED_SCORES)}, got {self.score!r}")
         _check(self.prioritization in ("rank", "topk"), f"{prefix}.prioritization",
@@ -355,13 +360,13 @@ class RaySection:
 class TrainConfig:
     """A whole training run."""
 
-    algorithm: str = "mappo"
+    algorithm: str = "mappo"  # a registered learner (ued.registry)
     seed: int = 0
     # Several seeds of one plain MARL run trained side by side in one compiled program
     # (vmapped over seeds; workers.local.train_marl_seeds). Empty: the one `seed`.
     seeds: tuple[int, ...] = ()
     env: EnvSection = field(default_factory=EnvSection)
-    learner: PPOConfig = field(default_factory=PPOConfig)
+    learner: LearnerConfig = field(default_factory=LearnerConfig)
     qlearning: QLearningConfig = field(default_factory=QLearningConfig)
     run: RunSection = field(default_factory=RunSection)
     ued: UEDSection = field(default_factory=UEDSection)
@@ -369,24 +374,18 @@ class TrainConfig:
     ray: RaySection = field(default_factory=RaySection)
 
     def validate(self) -> TrainConfig:
-        _check(self.algorithm in ALGORITHMS, "algorithm",
-               f"must be one of {', '.join(ALGORITHMS)}, got {self.algorithm!r}")
+        _check(self.algorithm in LEARNERS, "algorithm",
+               f"must be one of {', '.join(LEARNERS)}, got {self.algorithm!r}")
+        learner = learner_entry(self.algorithm)
         self.env.validate()
-        self.learner.validate(ppo=self.algorithm in PPO_ALGORITHMS)
+        self.learner.validate(ppo=learner.ppo_settings)
         self._validate_algorithm_settings()
-        if self.algorithm != "mappo_rnd":
-            defaults = PPOConfig()
-            for f in dataclasses.fields(PPOConfig):
-                _check(not f.name.startswith("rnd_")
-                       or getattr(self.learner, f.name) == getattr(defaults, f.name),
-                       f"learner.{f.name}", f"RND settings go with algorithm mappo_rnd, not "
-                       f"{self.algorithm}")
         self.run.validate()
         self.ued.validate()
         self.levels.validate()
         self.ray.validate()
         self._validate_seeds()
-        _check(not self.run.value_error_every or self.algorithm in PPO_ALGORITHMS,
+        _check(not self.run.value_error_every or learner.value_head,
                "run.value_error_every", f"the value error compares a value head with Monte-Carlo "
                f"returns; {self.algorithm} has no value head")
         _check(not self.run.value_error_every or not self.ued.enabled, "run.value_error_every",
@@ -416,8 +415,8 @@ class TrainConfig:
         _check(self.seed == 0, "seed", f"a multi-seed config lists its seeds in `seeds` only; "
                f"drop seed: {self.seed} (seeds: {list(self.seeds)})")
         supported = (f"several seeds train in one program for the PPO learners "
-                     f"({', '.join(PPO_ALGORITHMS)}) on plain MARL runs")
-        _check(self.algorithm in PPO_ALGORITHMS, "seeds",
+                     f"({', '.join(learners_where(lambda e: e.seeds))}) on plain MARL runs")
+        _check(learner_entry(self.algorithm).seeds, "seeds",
                f"{supported}; {self.algorithm} trains one seed per run (give `seed`)")
         _check(not self.ray.enabled, "seeds",
                f"{supported} on the local driver; ray.enabled trains one seed per run")
@@ -426,28 +425,39 @@ class TrainConfig:
                "(give `seed`)")
 
     def _validate_algorithm_settings(self) -> None:
-        """Settings the algorithm would ignore are mistakes: PPO's on a Q-learner, the
-        `qlearning` section on PPO, QMIX's mixer on IQL or VDN."""
+        """Settings the algorithm would ignore are mistakes: another learner's section
+        (`qlearning` on PPO), PPO's `learner` fields on a Q-learner, another learner's own
+        settings (QMIX's mixer on IQL, RND's on MAPPO). What each learner reads and supports
+        is its `ued.registry` entry."""
+        learner = learner_entry(self.algorithm)
         changed = lambda section, names: [n for n in names if getattr(section, n) != getattr(
             type(section)(), n)]
-        if self.algorithm in PPO_ALGORITHMS:
-            fields = [f.name for f in dataclasses.fields(QLearningConfig)]
-            for name in changed(self.qlearning, fields):
-                raise ConfigError(f"qlearning.{name}: a setting of the Q-learners "
-                                  f"({', '.join(Q_ALGORITHMS)}); {self.algorithm} does not use "
-                                  "it")
-            return
-        for name in changed(self.learner, PPO_ONLY_FIELDS):
-            raise ConfigError(f"learner.{name}: a PPO setting; {self.algorithm} does not use it")
-        if self.algorithm != "qmix":
-            for name in changed(self.qlearning, MIXER_FIELDS):
-                raise ConfigError(f"qlearning.{name}: a setting of QMIX's mixing network; "
-                                  f"{self.algorithm} has none")
-        self.qlearning.validate(self.learner.num_envs)
-        _check(self.learner.num_devices <= 1, "learner.num_devices",
+        for section in dict.fromkeys(e.settings for e in LEARNERS.values() if e.settings):
+            if section == learner.settings:
+                continue
+            owners = learners_where(lambda e, section=section: e.settings == section)
+            values = getattr(self, section)
+            for name in changed(values, [f.name for f in dataclasses.fields(values)]):
+                raise ConfigError(f"{section}.{name}: a setting of the "
+                                  f"{LEARNERS[owners[0]].family} ({', '.join(owners)}); "
+                                  f"{self.algorithm} does not use it")
+        if not learner.ppo_settings:
+            for name in changed(self.learner, PPO_ONLY_FIELDS):
+                raise ConfigError(f"learner.{name}: a PPO setting; {self.algorithm} does not "
+                                  "use it")
+        for other in LEARNERS.values():
+            for key in other.own_settings:
+                if key in learner.own_settings:
+                    continue
+                section, name = key.split(".")
+                _check(not changed(getattr(self, section), [name]), key,
+                       other.refusal.format(algorithm=self.algorithm))
+        if learner.settings is not None:
+            getattr(self, learner.settings).validate(self.learner.num_envs)
+        _check(learner.devices or self.learner.num_devices <= 1, "learner.num_devices",
                f"{self.algorithm} runs on one device (its replay buffer lives there), got "
                f"{self.learner.num_devices}")
-        _check(not self.ued.enabled, "ued.method",
+        _check(learner.curricula or not self.ued.enabled, "ued.method",
                f"the UED curricula train MAPPO or IPPO; {self.algorithm} trains on the "
                f"scenarios of env.scenario (ued.method: none)")
 
@@ -661,8 +671,7 @@ def apply_overrides(data: Any, overrides: Sequence[str], source: str = "config")
     return out
 
 
-__all__ = ["ALGORITHMS", "PPO_ALGORITHMS", "Q_ALGORITHMS", "Q_LEARNER_SETTINGS",
-           "TEAMS", "UED_METHODS", "UED_SCORES",
-           "ConfigError", "EnvSection", "PPOConfig", "QLearningConfig", "RaySection",
+__all__ = ["PPO_ONLY_FIELDS", "Q_LEARNER_SETTINGS", "TEAMS", "UED_SCORES",
+           "ConfigError", "EnvSection", "LearnerConfig", "QLearningConfig", "RaySection",
            "RunSection", "TrainConfig", "UEDSection", "apply_overrides", "config_from_dict",
            "load_config", "read_config_file"]

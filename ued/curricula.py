@@ -18,14 +18,15 @@ The replay decision belongs to the level buffer (`LevelBuffer.sample_replay_deci
 the minimum fill ratio and a draw below the replay probability), so that its random stream is
 saved with the buffer and a resumed run makes the same decisions. The curriculum's own state
 (the last branch, ACCEL's last replay batch) is a small dict saved next to each checkpoint.
+
+Each method is registered by name in `ued.registry` (what it needs: a buffer, scores,
+Explorers), which builds it with `from_config(ued_section)`.
 """
 
 from __future__ import annotations
 
 import enum
 from typing import Any, Protocol
-
-METHODS = ("dr", "plr", "robust_plr", "accel", "sfl")
 
 
 class Branch(enum.IntEnum):
@@ -57,6 +58,11 @@ class Curriculum:
         self.last_replay_ids: list[int] = []
 
     default_exploratory_grad_updates = True
+
+    @classmethod
+    def from_config(cls, ued: Any) -> Curriculum:
+        """The curriculum a config's `ued:` section (UEDSection) asks for."""
+        return cls(ued.exploratory_grad_updates)
 
     def next_branch(self, buffer: ReplayDecider | None) -> Branch:
         raise NotImplementedError
@@ -109,9 +115,20 @@ class PLR(Curriculum):
         self.default_exploratory_grad_updates = not robust
         super().__init__(exploratory_grad_updates)
 
+    @classmethod
+    def from_config(cls, ued: Any) -> Curriculum:
+        return cls(exploratory_grad_updates=ued.exploratory_grad_updates)
+
     def next_branch(self, buffer: ReplayDecider | None) -> Branch:
         assert buffer is not None
         return Branch.REPLAY if buffer.sample_replay_decision() else Branch.NEW
+
+
+class RobustPLR(PLR):
+    """Robust PLR: PLR without gradient updates on new levels (unless asked for)."""
+
+    def __init__(self, exploratory_grad_updates: bool | None = None):
+        super().__init__(robust=True, exploratory_grad_updates=exploratory_grad_updates)
 
 
 class ACCEL(PLR):
@@ -141,6 +158,10 @@ class SFL(Curriculum):
         super().__init__(True)
         self.update_freq = int(update_freq)
 
+    @classmethod
+    def from_config(cls, ued: Any) -> Curriculum:
+        return cls(ued.sfl_update_freq)
+
     def next_branch(self, buffer: ReplayDecider | None) -> Branch:
         return Branch.SFL
 
@@ -151,20 +172,16 @@ class SFL(Curriculum):
 
 def make_curriculum(method: str, exploratory_grad_updates: bool | None = None,
                     sfl_update_freq: int = 64) -> Curriculum:
-    """The curriculum of a `ued.method` name (one of METHODS); `exploratory_grad_updates`
-    (None: the method's own) only matters for PLR, Robust PLR and ACCEL."""
-    if method == "dr":
-        return DomainRandomization()
-    if method == "plr":
-        return PLR(robust=False, exploratory_grad_updates=exploratory_grad_updates)
-    if method == "robust_plr":
-        return PLR(robust=True, exploratory_grad_updates=exploratory_grad_updates)
-    if method == "accel":
-        return ACCEL(exploratory_grad_updates)
-    if method == "sfl":
-        return SFL(sfl_update_freq)
-    raise ValueError(f"unknown UED method {method!r}; expected one of {', '.join(METHODS)}")
+    """The curriculum registered as `method` (`ued.registry`) with these settings and the
+    other `ued:` settings at their defaults; `exploratory_grad_updates` (None: the method's
+    own) only matters for PLR, Robust PLR and ACCEL."""
+    from ued.config import UEDSection
+    from ued.registry import curriculum_for
+
+    return curriculum_for(UEDSection(method=method,
+                                     exploratory_grad_updates=exploratory_grad_updates,
+                                     sfl_update_freq=sfl_update_freq))
 
 
-__all__ = ["ACCEL", "METHODS", "PLR", "SFL", "Branch", "Curriculum", "DomainRandomization",
+__all__ = ["ACCEL", "PLR", "SFL", "Branch", "Curriculum", "DomainRandomization", "RobustPLR",
            "make_curriculum"]

@@ -12,9 +12,10 @@ import jax
 import jax.numpy as jnp
 
 from tabx.params import EnvConfig, EnvParams, stack_levels
-from ued.config import Q_ALGORITHMS, ConfigError, TrainConfig
+from ued.config import ConfigError, TrainConfig
 from ued.learners import make_learner
 from ued.learners.ppo import PPOLearner
+from ued.registry import learner_entry
 
 
 def scenario_levels(config: TrainConfig) -> tuple[EnvConfig, list[EnvParams]]:
@@ -43,10 +44,12 @@ def training_levels(config: TrainConfig) -> tuple[EnvConfig, EnvParams]:
 
 
 def learner_for(config: TrainConfig, env_config: EnvConfig | None = None) -> PPOLearner:
-    """The (per-process cached) learner of a config."""
+    """The (per-process cached) learner of a config (its `ued.registry` entry says which
+    config section, beside `learner`, it reads)."""
     if env_config is None:
         env_config = scenario_levels(config)[0]
-    q = config.qlearning if config.algorithm in Q_ALGORITHMS else None
+    settings = learner_entry(config.algorithm).settings
+    q = None if settings is None else getattr(config, settings)
     return make_learner(config.algorithm, env_config, config.learner, config.env.team,
                         config.env.opponent, q=q)
 

@@ -1,8 +1,8 @@
 """`tabx analyse value-error`: how far a learner's value V(s) is from the policy's true value.
 
-The paper's appendix "Value Error Estimation" (and TABX_REFERENCE.md section 11, the
-reference's `VALUE_EVAL_NUM_ENVS`), used to compare centralised (MAPPO) with independent
-(IPPO) value learning per scenario:
+The paper's appendix "Value Error Estimation" (and the reference's `VALUE_EVAL_NUM_ENVS`;
+docs/differences.md), used to compare centralised (MAPPO) with independent (IPPO) value
+learning per scenario:
 
 1. play the policy (sampling, as in training) in `states` envs for `horizon` steps, episodes
    restarting as in a training rollout, and keep one uniformly drawn time step per env: its

@@ -35,7 +35,7 @@ from ued.suites import EvalSuite
 from workers.durable_service import DurableLevelService
 from workers.evaluator import Evaluator, SuiteResult
 from workers.explorer import Explorer
-from workers.learner import Learner
+from workers.learner import LearnerWorker
 from workers.level_service import to_device, to_host
 from workers.ued_step import evaluators_for, level_service_for
 
@@ -154,12 +154,12 @@ class LearnerActor(ExplorerActor):
 
     def __init__(self, config: TrainConfig):
         super().__init__(config)
-        self.state: Learner | None = None
+        self.state: LearnerWorker | None = None
 
     def init(self, key: jax.Array) -> None:
-        self.state = Learner(self.learner, self.learner.init(key))
+        self.state = LearnerWorker(self.learner, self.learner.init(key))
 
-    def _learner(self) -> Learner:
+    def _learner(self) -> LearnerWorker:
         if self.state is None:
             raise RuntimeError("the learner actor has no train state: call init first")
         return self.state
@@ -186,7 +186,7 @@ class LearnerActor(ExplorerActor):
         return jax.device_get(self._learner().train_state)
 
     def set_train_state(self, train_state: Any, version: int) -> None:
-        self.state = Learner(self.learner, jax.tree.map(jnp.asarray, train_state), version)
+        self.state = LearnerWorker(self.learner, jax.tree.map(jnp.asarray, train_state), version)
 
 
 class EvaluatorActor(ActorBase):

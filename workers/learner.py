@@ -1,6 +1,7 @@
-"""Learner: the MAPPO / IPPO update on whatever batch of levels it is given.
+"""LearnerWorker: the learner's update (`ued.learners`) on whatever batch of levels it is given.
 
-A thin owner of the learner's train state. It counts its gradient updates on the host
+The worker that owns the learner's train state (the learner itself, a `PPOLearner`, is a
+static description of the update and holds no state). It counts its gradient updates on the host
 (`version`, the policy version stamped on every score), so asking for it never waits for the
 device. In local mode the driver calls it directly; a Ray actor wraps the same class.
 """
@@ -17,7 +18,7 @@ from ued.learners.ppo import PPOLearner, RolloutStats, TrainState
 from workers.explorer import scores_of
 
 
-class Learner:
+class LearnerWorker:
     """Holds the train state; `train(levels, key)` is one jitted rollout + PPO update."""
 
     def __init__(self, learner: PPOLearner, train_state: TrainState, version: int = 0):
@@ -47,4 +48,4 @@ class Learner:
         return metrics, scores, best
 
 
-__all__ = ["Learner"]
+__all__ = ["LearnerWorker"]

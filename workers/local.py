@@ -35,7 +35,7 @@ from ued.progress import logged_scalars
 from ued.run_folder import seed_dir
 from ued.tensorboard import SummaryWriter
 from workers.driver import Callback, Driver
-from workers.learner import Learner
+from workers.learner import LearnerWorker
 from workers.training_loop import Output, Report, Runner, train_loop
 from workers.ued_step import UEDRun, branch_text
 
@@ -222,7 +222,7 @@ class UEDRunner(Runner):
     def __init__(self, config: TrainConfig):
         super().__init__(config)
         self.run, self.ppo = UEDRun.local(config)
-        self.learner: Learner | None = None
+        self.learner: LearnerWorker | None = None
         self.train_state: Any = None
         self.version = 0
         self.metrics: dict[str, Any] = {}
@@ -246,7 +246,7 @@ class UEDRunner(Runner):
         self.version = self.run.resume(run_dir, start)
 
     def begin(self, start: int) -> None:
-        self.learner = Learner(self.ppo, self.train_state, self.version)
+        self.learner = LearnerWorker(self.ppo, self.train_state, self.version)
 
     def headline(self, run_dir: Path, start: int) -> str:
         config = self.config

@@ -296,7 +296,7 @@ def wait_until_ready(ray: Any, workers: Workers, stream: TextIO,
 
 
 class RemoteLearner:
-    """The learner actor behind `workers.learner.Learner`'s interface, with the policy version
+    """The learner actor behind `workers.learner.LearnerWorker`'s interface, with the policy version
     counted here and the parameters fetched once per version (a ref owned by the driver)."""
 
     def __init__(self, ray: Any, actor: Any, version: int = 0):

@@ -99,8 +99,11 @@ def snapshot_problem(levels_dir: Path, step: int, needs_buffer: bool,
 
 def checkpoint_problem(checkpoints: Checkpoints, template: Any, step: int,
                        key_template: jax.Array | None = None) -> tuple[str | None, Any]:
-    """(what keeps checkpoint `step` from restoring or None, the restored (state, key, step))."""
+    """(what keeps checkpoint `step` from restoring or None, the restored (state, key, step)).
+    `template` None: read it as saved (`Checkpoints.restore_saved`), with no learner."""
     try:
+        if template is None:
+            return None, checkpoints.restore_saved(step)
         return None, checkpoints.restore(template, step, key_template)
     except CheckpointError as err:
         return str(err), None
@@ -177,9 +180,11 @@ def set_aside(run_dir: Path, step: int, stream: TextIO | None) -> Path | None:
     return target
 
 
-def check_run(run_dir: Path, checkpoints: Checkpoints, template: Any, *, snapshots: bool,
-              needs_buffer: bool, key_template: jax.Array | None = None) -> list[StepCheck]:
-    """Every checkpointed step of a run folder, oldest first, checked as resume would."""
+def check_run(run_dir: Path, checkpoints: Checkpoints, template: Any = None, *,
+              snapshots: bool, needs_buffer: bool, key_template: jax.Array | None = None
+              ) -> list[StepCheck]:
+    """Every checkpointed step of a run folder, oldest first, checked as resume would;
+    `template` None reads each checkpoint as it was saved (`Checkpoints.restore_saved`)."""
     levels_dir = run_dir / LEVELS_DIR
     return [StepCheck(step, checkpoint_problem(checkpoints, template, step, key_template)[0],
                       snapshot_problem(levels_dir, step, needs_buffer, checkpoints)
@@ -188,26 +193,18 @@ def check_run(run_dir: Path, checkpoints: Checkpoints, template: Any, *, snapsho
 
 
 def check_run_folder(run_dir: str | Path) -> list[StepCheck]:
-    """`check_run` for a run folder as it is on disk (its own config says what it keeps)."""
-    from ued.curricula import make_curriculum
-    from ued.experiment import learner_for, seed_keys
+    """`check_run` for a run folder as it is on disk: its config says what it keeps (the
+    curriculum's registry entry whether it has a level buffer); no learner, train state or
+    curriculum is built, and each checkpoint is read as it was saved."""
+    from ued.registry import curriculum_entry
     from ued.run_folder import open_checkpoints, read_run_config
 
     run_dir = Path(run_dir)
     config = read_run_config(run_dir)
     ued = config.ued
-    uses_buffer = ued.enabled and make_curriculum(ued.method, ued.exploratory_grad_updates,
-                                                  ued.sfl_update_freq).uses_buffer
-    learner = learner_for(config)
-    keys = None
-    if config.seeds:  # a multi-seed run stores its seeds' states and keys stacked
-        keys = seed_keys(config.seeds)
-        template = learner.init_seeds(keys)
-    else:
-        template = learner.init(jax.random.key(0))
+    uses_buffer = ued.enabled and curriculum_entry(ued.method).uses_buffer
     with open_checkpoints(run_dir, config, create=False) as checkpoints:
-        return check_run(run_dir, checkpoints, template, snapshots=ued.enabled,
-                         needs_buffer=uses_buffer, key_template=keys)
+        return check_run(run_dir, checkpoints, snapshots=ued.enabled, needs_buffer=uses_buffer)
 
 
 def format_checks(run_dir: str | Path, checks: list[StepCheck]) -> str:

@@ -3,13 +3,13 @@ level service for, what to play, what to commit.
 
     branch = curriculum.next_branch(buffer)        DR: NEW; PLR/Robust PLR: NEW or REPLAY;
                                                    ACCEL: ... REPLAY then MUTATE; SFL: SFL
-    NEW     levels = service.fresh()      -> Learner.train (PLR, DR) or Explorer (Robust PLR,
+    NEW     levels = service.fresh()      -> LearnerWorker.train (PLR, DR) or Explorer (Robust PLR,
                                              ACCEL) -> scores -> service.insert
-    REPLAY  replay = service.replay()     -> Learner.train -> scores -> service.update
+    REPLAY  replay = service.replay()     -> LearnerWorker.train -> scores -> service.update
     MUTATE  children = mutate(last replay)-> Explorer -> scores -> service.insert (MUTATION)
     SFL     [every sfl_update_freq steps: score sfl_num_batches x sfl_batch_size fresh levels
              by learnability with the Explorer, keep the top sfl_top_k]
-            levels = fresh half + learnable half -> Learner.train
+            levels = fresh half + learnable half -> LearnerWorker.train
 
 This is sequential PLR / Robust PLR / ACCEL exactly as the papers (and JaxUED) define them.
 `UEDRun.step` takes every decision. Where and when the parts run is its `Schedule`: by default
@@ -37,16 +37,17 @@ from level_buffer import Source
 from tabx import constants as C
 from tabx.params import EnvParams, stack_levels
 from ued.config import ConfigError, TrainConfig
-from ued.curricula import SFL, Branch, Curriculum, make_curriculum
+from ued.curricula import SFL, Branch, Curriculum
 from ued.experiment import learner_for, scenario_levels
 from ued.learners.ppo import PPOLearner
 from ued.levels import LevelGenerator
+from ued.registry import curriculum_entry, curriculum_for
 from ued.run_folder import LEVELS_DIR
 from ued.suites import load_suite
 from ued.tensorboard import SummaryWriter
 from workers.evaluator import Evaluator
 from workers.explorer import Explorer
-from workers.learner import Learner
+from workers.learner import LearnerWorker
 from workers.level_service import LevelService, to_device, to_host
 from workers.resume import state_problem
 
@@ -62,9 +63,8 @@ def level_service_for(config: TrainConfig, learner: PPOLearner) -> LevelService:
     generator = LevelGenerator(env_config, base, config.levels)
     ued = config.ued
     template = jax.tree.map(lambda x: np.asarray(x)[0], base)
-    uses_buffer = make_curriculum(ued.method, ued.exploratory_grad_updates,
-                                  ued.sfl_update_freq).uses_buffer
-    return LevelService(generator, template, ued, seed=config.seed, use_buffer=uses_buffer)
+    return LevelService(generator, template, ued, seed=config.seed,
+                        use_buffer=curriculum_entry(ued.method).uses_buffer)
 
 
 def evaluators_for(config: TrainConfig, learner: PPOLearner) -> list[Evaluator]:
@@ -113,7 +113,7 @@ class Schedule(Protocol):
 
 class UEDRun:
     """One UED run's step logic over its workers: the curriculum decides, the LevelService
-    hands out and takes back levels, the Learner trains, the Explorer scores. The workers are
+    hands out and takes back levels, the LearnerWorker trains, the Explorer scores. The workers are
     the local classes (the local driver) or stand-ins with the same methods that call Ray
     actors (the Ray driver), so both drivers take every decision the same way. A UEDRun is
     also the schedule that runs every part of a step here and now."""
@@ -122,8 +122,7 @@ class UEDRun:
                  evaluators: list[Any] = ()):
         self.config = config
         ued = config.ued
-        self.curriculum: Curriculum = make_curriculum(ued.method, ued.exploratory_grad_updates,
-                                                      ued.sfl_update_freq)
+        self.curriculum: Curriculum = curriculum_for(ued)
         self.service, self.explorer, self.evaluators = service, explorer, list(evaluators)
         self.sfl_scoring_steps = 0
         self.branch_counts = {b: 0 for b in Branch}  # steps of each kind, over the whole run
@@ -131,13 +130,13 @@ class UEDRun:
     @classmethod
     def local(cls, config: TrainConfig) -> tuple[UEDRun, PPOLearner]:
         """A run over workers built in this process, and its learner (to init or restore the
-        train state that a `workers.learner.Learner` holds)."""
+        train state that a `workers.learner.LearnerWorker` holds)."""
         ppo_learner, service, explorer, evaluators = local_workers(config)
         return cls(config, service, explorer, evaluators), ppo_learner
 
     # --- one step ----------------------------------------------------------------------------
 
-    def step(self, learner: Learner, step: int, key: jax.Array,
+    def step(self, learner: LearnerWorker, step: int, key: jax.Array,
              schedule: Schedule | None = None
              ) -> tuple[Branch, dict[str, Any] | None, EnvParams | None]:
         """Run one curriculum step; returns its branch, its metrics (device values) and the
@@ -197,7 +196,7 @@ class UEDRun:
     def learn(self, step: int, train: Callable[[], T]) -> T:
         return train()
 
-    def explore(self, learner: Learner, step: int, request: LevelRequest, key: jax.Array
+    def explore(self, learner: LearnerWorker, step: int, request: LevelRequest, key: jax.Array
                 ) -> tuple[dict[str, Any], EnvParams]:
         """A step that only scores new or mutated levels (Robust PLR, ACCEL) and offers them to
         the buffer: (episode metrics, levels played)."""
@@ -208,7 +207,7 @@ class UEDRun:
         self.commit(request, levels, scores, best, version)
         return metrics, levels
 
-    def learning_step(self, learner: Learner, branch: Branch, step: int, keys: jax.Array
+    def learning_step(self, learner: LearnerWorker, branch: Branch, step: int, keys: jax.Array
                       ) -> tuple[dict[str, Any], EnvParams, np.ndarray | None]:
         """A step that trains the policy: (metrics, levels played, replayed ids or None)."""
         k_levels, k_roll, k_edit = keys
@@ -252,7 +251,7 @@ class UEDRun:
             return parts[0]
         return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), *parts)
 
-    def refresh_learnable(self, learner: Learner, key: jax.Array) -> None:
+    def refresh_learnable(self, learner: LearnerWorker, key: jax.Array) -> None:
         """Score sfl_num_batches x sfl_batch_size fresh levels by learnability p (1 - p) under
         the current policy; keep the sfl_top_k most learnable."""
         ued = self.config.ued
@@ -269,7 +268,7 @@ class UEDRun:
 
     # --- evaluation and logging --------------------------------------------------------------
 
-    def evaluate(self, learner: Learner, writer: SummaryWriter, done: int,
+    def evaluate(self, learner: LearnerWorker, writer: SummaryWriter, done: int,
                  stream: TextIO | None) -> None:
         """Every evaluation suite on the current policy, logged at step `done`."""
         config = self.config
@@ -295,7 +294,7 @@ class UEDRun:
 
     # --- state -------------------------------------------------------------------------------
 
-    def state(self, learner: Learner) -> dict[str, Any]:
+    def state(self, learner: LearnerWorker) -> dict[str, Any]:
         return {"curriculum": self.curriculum.state_dict(), "version": learner.version,
                 "sfl_scoring_steps": self.sfl_scoring_steps,
                 "branch_counts": {b.name.lower(): n for b, n in self.branch_counts.items()}}
@@ -315,7 +314,7 @@ class UEDRun:
         self.branch_counts = {b: int(counts.get(b.name.lower(), 0)) for b in Branch}
         return int(state["version"])
 
-    def save(self, run_dir: Path, done: int, learner: Learner) -> None:
+    def save(self, run_dir: Path, done: int, learner: LearnerWorker) -> None:
         """The level snapshot of step `done` in `RUN_DIR/levels/`. Written before the
         checkpoint of the same step: a checkpoint without one cannot be resumed."""
         self.service.save(str(run_dir / LEVELS_DIR), done, self.state(learner),

@@ -1,4 +1,4 @@
-"""Reader for the reference implementation's scenario JSON (TABX_REFERENCE.md section 7).
+"""Reader for the reference implementation's scenario JSON (docs/differences.md).
 
 A reference file has up to three top-level keys: `grid_info` (editor metadata; we take the arena
 size from it), `scenario` (17 per-unit column lists, scalars wrapped as `[v]`) and

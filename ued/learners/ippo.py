@@ -20,7 +20,7 @@ from ued.learners.ppo import PPOLearner, team_mean
 
 
 class IPPO(PPOLearner):
-    """Recurrent IPPO with a shared actor-critic (paper's defaults in `PPOConfig`)."""
+    """Recurrent IPPO with a shared actor-critic (paper's defaults in `LearnerConfig`)."""
 
     name = "ippo"
     centralised = False

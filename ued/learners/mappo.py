@@ -23,7 +23,7 @@ from ued.learners.ppo import PPOLearner
 
 
 class MAPPO(PPOLearner):
-    """Recurrent MAPPO (paper's defaults in `PPOConfig`)."""
+    """Recurrent MAPPO (paper's defaults in `LearnerConfig`)."""
 
     name = "mappo"
     centralised = True

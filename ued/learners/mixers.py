@@ -2,8 +2,8 @@
 
 - VDN: Q_tot = sum over agents of Q_i.
 - QMIX: a two-layer mixing network whose weights come from hypernetworks on the world state
-  (TABX_REFERENCE.md section 11): with E the embedding width and H the hypernetworks' hidden
-  width,
+  (as the reference's; docs/differences.md): with E the embedding width and H the
+  hypernetworks' hidden width,
 
       W1 = |Dense(A E)(relu(Dense(H)(s)))|      b1 = Dense(E)(s)
       W2 = |Dense(E)(relu(Dense(H)(s)))|        b2 = Dense(1)(relu(Dense(E)(s)))

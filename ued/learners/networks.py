@@ -1,6 +1,6 @@
 """Recurrent networks of the PPO learners, as pure functions over parameter dicts.
 
-One trunk serves every network (TABX_REFERENCE.md section 11, `layers.py` of the reference):
+One trunk serves every network (`layers.py` of the reference; docs/differences.md):
 
     x -> Dense(H) -> LayerNorm -> ReLU -> GRU(H) -> Dense(H) -> LayerNorm -> ReLU -> Dense(out)
 

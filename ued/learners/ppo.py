@@ -26,7 +26,7 @@ appended to the observation. What the masks mean:
   slots have IDLE as their only action): only valid agent steps enter the policy loss, the
   entropy, the advantage normalisation and (IPPO) the value loss;
 - the hidden states are reset at every episode boundary (the reference resets them only on
-  a unit's death, TABX_REFERENCE.md section 12); invalid actions get logits -1e10.
+  a unit's death, docs/differences.md); invalid actions get logits -1e10.
 
 Rewards are the team reward `reward[:, team]`; a win is `info["won"][:, team]`. Episode
 metrics (win rate, return, length, first-kill rate) count the episodes that ended during the
@@ -51,7 +51,7 @@ from tabx.env import TabxEnv
 from tabx.jit_options import learner_jit
 from tabx.params import EnvConfig, EnvParams
 from tabx.state import EnvState
-from ued.config import PPOConfig
+from ued.config import LearnerConfig
 
 MASKED_LOGIT = -1e10
 START_KEY_STREAM = 0x5741  # folded into a rollout's first keys to draw its start positions
@@ -215,10 +215,10 @@ class PPOLearner:
     param_groups: tuple[str, ...] = ("net",)  # optimiser groups, each clipped on its own
     frozen_groups: tuple[str, ...] = ()  # parameter groups the PPO optimiser leaves alone
 
-    def __init__(self, env_config: EnvConfig, ppo: PPOConfig | None = None,
+    def __init__(self, env_config: EnvConfig, ppo: LearnerConfig | None = None,
                  team: str | int = "ally", opponent: str | Controller = "heuristic:medium"):
         self.env_config = env_config
-        self.ppo = ppo if ppo is not None else PPOConfig()
+        self.ppo = ppo if ppo is not None else LearnerConfig()
         self.team = team if isinstance(team, int) else ("ally", "enemy").index(team)
         self.opponent = opponent if isinstance(opponent, Controller) else Controller.parse(
             opponent)
@@ -740,18 +740,20 @@ def episode_metrics(records: dict[str, jax.Array]) -> dict[str, jax.Array]:
             "episode/first_kill_rate": per(records["first_kill"])}
 
 
-@functools.lru_cache(maxsize=8)
-def _cached(cls: type, env_config: EnvConfig, ppo: PPOConfig, team: int, opponent: Controller
-            ) -> PPOLearner:
-    return cls(env_config, ppo, team, opponent)
+@functools.lru_cache(maxsize=16)
+def _cached(cls: type, env_config: EnvConfig, ppo: LearnerConfig, team: int,
+            opponent: Controller, *settings: Any) -> PPOLearner:
+    return cls(env_config, ppo, team, opponent, *settings)
 
 
-def cached_learner(cls: type, env_config: EnvConfig, ppo: PPOConfig, team: str | int,
-                   opponent: str | Controller) -> PPOLearner:
-    """One learner (and so one compiled update) per distinct static setting in a process."""
+def cached_learner(cls: type, env_config: EnvConfig, ppo: LearnerConfig, team: str | int,
+                   opponent: str | Controller, *settings: Any) -> PPOLearner:
+    """One learner (and so one compiled update) per distinct static setting in a process;
+    `settings`: the learner's own config section, for a learner that has one (a Q-learner's
+    QLearningConfig)."""
     team = team if isinstance(team, int) else ("ally", "enemy").index(team)
     opponent = opponent if isinstance(opponent, Controller) else Controller.parse(opponent)
-    return _cached(cls, env_config, ppo, team, opponent)
+    return _cached(cls, env_config, ppo, team, opponent, *settings)
 
 
 __all__ = ["PPOLearner", "RolloutStats", "TrainState", "Transition", "cached_learner",

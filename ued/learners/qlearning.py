@@ -15,8 +15,8 @@ in the same level), here acting epsilon-greedily. Then, in the same jitted progr
 3. every `target_update_interval` updates the target network moves to the online one
    (a copy with tau 1).
 
-The Q-network (TABX_REFERENCE.md section 11, `RNNQNetwork`) is shared by the agents of the team,
-with a one-hot agent id appended to the observation as for PPO:
+The Q-network (the reference's `RNNQNetwork`; docs/differences.md) is shared by the agents of
+the team, with a one-hot agent id appended to the observation as for PPO:
 
     x -> Dense(H) -> LayerNorm -> ReLU -> GRU(H) -> Dense(8)     (H = learner.hidden_dim)
 
@@ -42,7 +42,6 @@ greedy action (ties split evenly), as taking their argmax does.
 
 from __future__ import annotations
 
-import functools
 from typing import Any
 
 import flashbax as fbx
@@ -54,7 +53,7 @@ from flax import struct
 from tabx import constants as C
 from tabx.controllers import Controller
 from tabx.params import EnvConfig, EnvParams
-from ued.config import PPOConfig, QLearningConfig
+from ued.config import LearnerConfig, QLearningConfig
 from ued.learners import mixers
 from ued.learners import networks as nw
 from ued.learners.ppo import (
@@ -167,11 +166,11 @@ class QLearner(PPOLearner):
     name = "qlearning"
     mixer = "none"
 
-    def __init__(self, env_config: EnvConfig, ppo: PPOConfig | None = None,
+    def __init__(self, env_config: EnvConfig, ppo: LearnerConfig | None = None,
                  team: str | int = "ally", opponent: str | Controller = "heuristic:medium",
                  q: QLearningConfig | None = None):
         self.q = q if q is not None else QLearningConfig()
-        ppo = ppo if ppo is not None else PPOConfig()
+        ppo = ppo if ppo is not None else LearnerConfig()
         self.q.validate(ppo.num_envs)  # the buffer's sizes (a ConfigError naming the field)
         # The QMIX mixer reads the world state (the rollout records it for centralised
         # learners only).
@@ -430,23 +429,6 @@ class QMIX(QLearner):
     mixer = "qmix"
 
 
-Q_LEARNERS: dict[str, type[QLearner]] = {"iql": IQL, "vdn": VDN, "qmix": QMIX}
-
-
-@functools.lru_cache(maxsize=8)
-def _cached(cls: type, env_config: EnvConfig, ppo: PPOConfig, team: int, opponent: Controller,
-            q: QLearningConfig) -> QLearner:
-    return cls(env_config, ppo, team, opponent, q)
-
-
-def cached_q_learner(cls: type, env_config: EnvConfig, ppo: PPOConfig, team: str | int,
-                     opponent: str | Controller, q: QLearningConfig) -> QLearner:
-    """One learner (and so one compiled update) per distinct static setting in a process."""
-    team = team if isinstance(team, int) else ("ally", "enemy").index(team)
-    opponent = opponent if isinstance(opponent, Controller) else Controller.parse(opponent)
-    return _cached(cls, env_config, ppo, team, opponent, q)
-
-
-__all__ = ["GREEDY_LOGIT_SCALE", "IQL", "QMIX", "Q_LEARNERS", "QLearner",
-           "QTrainState", "Trajectory", "VDN", "cached_q_learner", "epsilon_schedule",
+__all__ = ["GREEDY_LOGIT_SCALE", "IQL", "QMIX", "QLearner",
+           "QTrainState", "Trajectory", "VDN", "epsilon_schedule",
            "masked_argmax", "qnet_init", "qnet_sequence", "qnet_step"]

@@ -1,7 +1,7 @@
 """MAPPO+RND: MAPPO with a random-network-distillation exploration bonus on the world state.
 
 The paper's exploration baseline (section "Exploration", appendix "Exploration", table "RND
-Hyperparameters"; TABX_REFERENCE.md section 11, `mappo_rnn_rnd.py`):
+Hyperparameters"; the reference's `mappo_rnn_rnd.py`, docs/differences.md):
 
 - a fixed, randomly initialised *target* network g and a trained *predictor* f, both MLPs of
   `rnd_layers` x Dense(`rnd_hidden_dim`) + ReLU and a Dense(`rnd_output_dim`) output, read the
@@ -65,7 +65,7 @@ def prediction_error(rnd: dict, world: jax.Array) -> jax.Array:
 
 
 class MAPPORND(MAPPO):
-    """Recurrent MAPPO with RND (the paper's settings: `PPOConfig.rnd_*`, ent_coef 0.001 in
+    """Recurrent MAPPO with RND (the paper's settings: `LearnerConfig.rnd_*`, ent_coef 0.001 in
     the configs)."""
 
     name = "mappo_rnd"
