@@ -206,6 +206,7 @@ class Checkpoints:
         except Exception as err:  # noqa: BLE001 (orbax and TensorStore raise many kinds)
             raise CheckpointError(f"{self.directory / str(update)}: cannot be restored "
                                   f"({gist(err)})") from err
+        self.verify(int(update), item)
         key = jax.random.wrap_key_data(jnp.asarray(np.asarray(item["key"], np.uint32)))
         return item["train_state"], key, int(update)
 
