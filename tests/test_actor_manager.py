@@ -118,6 +118,20 @@ class MemoryKilled:
         return call
 
 
+def test_every_error_ray_raises_for_a_lost_actor_or_node_is_a_loss_and_no_other():
+    from workers.actor_manager import is_lost
+
+    ray = FakeRay()
+    lost = [exceptions.ActorDiedError(), exceptions.ActorUnavailableError("restarting", None),
+            oom("e0" * 14), exceptions.NodeDiedError("node 0a1b died"),
+            exceptions.ObjectLostError("ab" * 14, None, ""),
+            exceptions.OwnerDiedError("ab" * 14, None, "")]
+    assert all(is_lost(ray, err) for err in lost)
+    bugs = [exceptions.ReferenceCountingAssertionError("ab" * 14, None, ""),
+            exceptions.GetTimeoutError("late"), ValueError("the actor's own error")]
+    assert not any(is_lost(ray, err) for err in bugs)
+
+
 def test_an_explorer_killed_by_the_memory_monitor_restarts_and_its_batch_is_reissued():
     from workers.actors import ExplorerActor, LearnerActor, LevelServiceActor
     from workers.ray_driver import AsyncRun, ExplorerPool, RemoteLearner, Workers

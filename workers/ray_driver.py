@@ -573,10 +573,10 @@ class AsyncRun:
         levels = self.actors.send(Call.of(SERVICE, request.method, *request.args))
         batch = Batch(step, request, key, learner.version, i, levels)
         score = self.config.ued.score
-        # Rebuilt at every sending: the current policy, the levels as asked for last.
+        # Rebuilt at every sending: the current policy, the levels as asked for last (the
+        # closure holds the levels' call, not the batch: no cycle keeps refs alive).
         batch.score = Call(self.names[i], "score_levels",
-                           lambda: (self.learner.params, batch.levels.ref, batch.key, score,
-                                    None, None),
+                           lambda: (self.learner.params, levels.ref, key, score, None, None),
                            then="its batches are re-issued with the current policy on its "
                                 "restart", after=(levels,))
         self.ledger[step] = "issued"
@@ -881,7 +881,8 @@ class RayRunner(Runner):
             self.asynchronous.log_evaluations(output.writer, output.notes, block=True)
         try:  # where the actors ended (a restarted one may have moved)
             for name in workers.names():
-                if name.startswith("explorer") or name == "evaluator":
+                restarts = name.startswith("explorer") or name == "evaluator"
+                if restarts and self.actors.available(name):
                     self.actors.wait_back(name, timeout_s=60)
             placement_end = workers.placement(ray)
         except Exception as err:
