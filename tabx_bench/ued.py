@@ -144,13 +144,14 @@ class RayStepper:
     `ray.deterministic` the local driver's schedule over the actors (the local work)."""
 
     def __init__(self, ray: Any, config: TrainConfig, stream: TextIO):
+        from workers.actor_manager import ActorDeaths
         from workers.ray_driver import (
             AsyncRun,
             ExplorerPool,
             RemoteLearner,
             start_workers,
         )
-        from workers.ray_restarts import ActorDeaths, RemoteService
+        from workers.ray_restarts import RemoteService
 
         self.ray, self.config = ray, config
         self.workers = start_workers(ray, config, stream)

@@ -17,9 +17,10 @@ import pytest
 from test_ued_train import ued_config
 
 from ued.curricula import Branch
+from workers.actor_manager import ActorDeaths
 from workers.actors import ExplorerActor, LearnerActor, LevelServiceActor
 from workers.ray_driver import AsyncRun, ExplorerPool, RemoteLearner, Workers
-from workers.ray_restarts import ActorDeaths, RemoteService
+from workers.ray_restarts import RemoteService
 from workers.ued_step import UEDRun
 
 

@@ -54,6 +54,7 @@ from ued.config import ConfigError, RaySection, TrainConfig
 from ued.curricula import Branch
 from ued.run_folder import LEVELS_DIR
 from ued.tensorboard import SummaryWriter
+from workers.actor_manager import ActorDeaths, ActorManager, Call, death_cause, is_lost
 from workers.actors import (
     EvaluatorActor,
     ExplorerActor,
@@ -62,23 +63,13 @@ from workers.actors import (
     ParamsRef,
 )
 from workers.driver import Callback, Driver, RunStopped
-from workers.ray_restarts import (
-    MAX_CALL_FAILURES,
-    ActorDeaths,
-    Chaos,
-    RemoteService,
-    call_restarting,
-    death_cause,
-    is_actor,
-    wait_restarted,
-)
+from workers.ray_restarts import SERVICE, Chaos, RemoteService
 from workers.training_loop import Output, Report, Runner, train_loop
 from workers.ued_step import LevelRequest, UEDRun, branch_text
 
 RAY_ENV = {"RAY_USAGE_STATS_ENABLED": "0"}
 RAY_RECORD = "ray.json"  # in the run folder: where the actors run, what was committed
 RAY_NAMESPACE = "tabx-ued"  # of the named actors of runs (`tabx runs buffer` finds them)
-RESTART_WAIT_S = 30.0  # for a call sent to a service that died to report its failure
 
 T = TypeVar("T")
 
@@ -196,10 +187,14 @@ class Workers:
     def scorer_names(self) -> list[str]:
         return [f"explorer-{i}" for i in range(len(self.explorers))] or ["learner"]
 
-    def explorer_pool(self, ray: Any, deaths: ActorDeaths) -> ExplorerPool:
-        """The scorers for blocking calls; dead Explorers are waited for, the learner not."""
-        return ExplorerPool(ray, self.scorers(), self.scorer_names(),
-                            deaths if self.explorers else None)
+    def register(self, actors: ActorManager) -> None:
+        """Add the learner, Explorers and Evaluator to `actors` (the service adds itself,
+        `RemoteService`): Ray restarts the Explorers and the Evaluator, not the learner."""
+        actors.add("learner", self.learner, restarts=False)
+        for i, explorer in enumerate(self.explorers):
+            actors.add(f"explorer-{i}", explorer, restarts=True)
+        if self.evaluator is not None:
+            actors.add("evaluator", self.evaluator, restarts=True)
 
 
 def start_workers(ray: Any, config: TrainConfig, stream: TextIO,
@@ -299,19 +294,22 @@ class RemoteLearner:
     """The learner actor behind `workers.learner.LearnerWorker`'s interface, with the policy version
     counted here and the parameters fetched once per version (a ref owned by the driver)."""
 
-    def __init__(self, ray: Any, actor: Any, version: int = 0):
-        self._ray, self._actor = ray, actor
+    def __init__(self, ray: Any, actor: Any, version: int = 0,
+                 actors: ActorManager | None = None):
+        self._actors = ActorManager(ray) if actors is None else actors
+        self._actors.add("learner", actor, restarts=False)
+        self._actor = actor
         self.version = int(version)
         self._params: ParamsRef | None = None
 
     def train(self, levels: Any, key: jax.Array) -> tuple[dict[str, Any], None]:
-        metrics = self._ray.get(self._actor.train.remote(levels, key))
+        metrics = self._actors.call("learner", "train", levels, key)
         self.version += 1
         return metrics, None
 
     def train_scored(self, levels: Any, key: jax.Array, score: str,
                      max_returns: Any = None) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
-        out = self._ray.get(self._actor.train_scored.remote(levels, key, score, max_returns))
+        out = self._actors.call("learner", "train_scored", levels, key, score, max_returns)
         self.version += 1
         return out
 
@@ -323,25 +321,31 @@ class RemoteLearner:
 
     @property
     def train_state(self) -> Any:
-        return self._ray.get(self._actor.train_state.remote())
+        return self._actors.call("learner", "train_state")
 
 
 class ExplorerPool:
     """Explorer actors behind `workers.explorer.Explorer`'s interface: calls go round-robin and
     wait (the deterministic mode). A call whose Explorer dies runs again on its restart with
-    the same arguments: in this mode they are what the schedule asks for."""
+    the same arguments: in this mode they are what the schedule asks for. `actors`: the run's
+    ActorManager (where the Explorers restart); without one, a death raises."""
 
     def __init__(self, ray: Any, actors: list[Any], names: list[str] | None = None,
-                 deaths: ActorDeaths | None = None):
-        self._ray, self._actors, self._next = ray, actors, 0
+                 manager: ActorManager | None = None):
+        self._manager = ActorManager(ray) if manager is None else manager
         self._names = names or [f"scorer-{i}" for i in range(len(actors))]
-        self._deaths = deaths
+        for name, actor in zip(self._names, actors, strict=True):
+            self._manager.add(name, actor, restarts=False)
+        self._next = 0
+
+    def _send(self, method: str, *args: Any, then: str) -> Call:
+        name = self._names[self._next % len(self._names)]
+        self._next += 1
+        return self._manager.send(Call.of(name, method, *args, then=then))
 
     def _call(self, method: str, *args: Any) -> Any:
-        i = self._next % len(self._actors)
-        self._next += 1
-        return call_restarting(self._ray, self._actors[i], self._names[i], method, args,
-                               self._deaths)
+        return self._manager.get(self._send(method, *args,
+                                            then=f"{method} runs again on its restart"))
 
     def score_levels(self, params: ParamsRef, levels: Any, key: jax.Array, score: str,
                      max_returns: Any = None, num_steps: int | None = None) -> Any:
@@ -355,27 +359,10 @@ class ExplorerPool:
                              num_steps: int | None = None) -> list[np.ndarray]:
         """SFL's batches spread over the Explorers at once, results in batch order (so the
         same as one after another); a batch whose Explorer died runs again on its restart."""
-        sent = []
-        for levels, key in batches:
-            i = self._next % len(self._actors)
-            self._next += 1
-            args = (params, levels, key, num_steps)
-            sent.append((i, args, self._actors[i].learnability.remote(*args)))
-        out, revived = [], set()
-        for i, args, ref in sent:
-            try:
-                out.append(self._ray.get(ref))
-            except self._ray.exceptions.RayActorError as err:
-                if self._deaths is None:
-                    raise
-                if i not in revived:  # one death, however many of its batches it took
-                    self._deaths.saw(self._names[i], err,
-                                     "its learnability batches run again on its restart")
-                    wait_restarted(self._ray, self._actors[i], self._names[i])
-                    revived.add(i)
-                out.append(call_restarting(self._ray, self._actors[i], self._names[i],
-                                           "learnability", args, self._deaths))
-        return out
+        then = "its learnability batches run again on its restart"
+        calls = [self._send("learnability", params, levels, key, num_steps, then=then)
+                 for levels, key in batches]
+        return [self._manager.get(call) for call in calls]
 
 
 class RemoteEvaluator:
@@ -383,14 +370,15 @@ class RemoteEvaluator:
     An evaluation whose actor dies runs again on its restart (same parameters and key)."""
 
     def __init__(self, ray: Any, actor: Any, index: int, suite_name: str,
-                 deaths: ActorDeaths | None = None):
-        self._ray, self._actor, self.index = ray, actor, index
+                 actors: ActorManager | None = None):
+        self._actors = ActorManager(ray) if actors is None else actors
+        self._actors.add("evaluator", actor, restarts=False)
+        self.index = index
         self.suite = _SuiteName(suite_name)
-        self._deaths = deaths
 
     def evaluate(self, params: ParamsRef, key: jax.Array) -> Any:
-        return call_restarting(self._ray, self._actor, "evaluator", "evaluate",
-                               (self.index, params, key), self._deaths)
+        return self._actors.call("evaluator", "evaluate", self.index, params, key,
+                                 then="evaluate runs again on its restart")
 
     def log(self, writer: SummaryWriter, step: int, result: Any) -> None:
         from workers.evaluator import log
@@ -412,29 +400,22 @@ class Batch:
 
     step: int
     request: LevelRequest  # the service call that made the levels, how they are filed
-    levels: Any  # ObjectRef of the numpy levels
     key: jax.Array
-    version: int
+    version: int  # of the policy it was (last) sent with
     explorer: int
-    levels_incarnation: int = 0  # of the service when it was asked for them
+    levels: Call  # to the service: its ref is the numpy levels
+    score: Call | None = None  # to the Explorer (its arguments: the current policy)
     issued_s: float = field(default_factory=time.perf_counter)
     rescored: int = 0
-    incarnation: int = 0  # of the Explorer it was last submitted to
-    failures: int = 0  # submissions lost with a dead Explorer, in a row
 
 
 @dataclass
 class Evaluation:
-    """One suite's evaluation at one step, on the Evaluator: what is needed to run it again."""
+    """One suite's evaluation at one step, on the Evaluator (its call runs it again)."""
 
     step: int
     suite: str
-    index: int
-    params: ParamsRef
-    key: jax.Array
-    ref: Any = None
-    incarnation: int = 0
-    failures: int = 0
+    call: Call
 
 
 @dataclass
@@ -484,62 +465,65 @@ class RayStats:
 
 
 class AsyncRun:
-    """The asynchronous schedule over the actors of one run (see the module doc)."""
+    """The asynchronous schedule over the actors of one run (see the module doc). Its calls go
+    through the run's ActorManager (`service.actors`): a batch or an evaluation lost with its
+    actor is sent again on the restart."""
 
     def __init__(self, ray: Any, config: TrainConfig, run: UEDRun, learner: RemoteLearner,
-                 workers: Workers, service: RemoteService, deaths: ActorDeaths | None = None):
+                 workers: Workers, service: RemoteService):
         self.ray, self.config, self.run, self.learner, self.workers = (ray, config, run,
                                                                        learner, workers)
         self.scorers = workers.scorers()
         self.names = workers.scorer_names()
-        self.deaths = ActorDeaths(None) if deaths is None else deaths
         # The run's service too: one numbering of the state-changing calls per actor.
         self.service = service
+        self.actors = service.actors
+        workers.register(self.actors)
         self.service.on_restart.append(self.ask_again_for_lost_levels)
         self.pending: dict[Any, Batch] = {}
         self.inflight = [0] * len(self.scorers)
-        # Deaths seen per scorer: a result lost with incarnation k is one death only if the
-        # scorer is still at k (its other batches in flight died with the same process).
-        self.incarnation = [0] * len(self.scorers)
         self.stats = RayStats()
         self.ledger: dict[int, str] = {}  # step -> "issued" | "committed"
         self.recent_lags: deque[int] = deque(maxlen=1000)
         self.evaluations: list[Evaluation] = []  # running
-        self.evaluator_incarnation = 0
 
     # Evaluation runs beside training: submitted at its steps, logged when it is done -------
 
     def submit_evaluation(self, done: int) -> None:
-        if self.workers.evaluator is None:
+        if self.workers.evaluator is None or not self.actors.available("evaluator"):
             return
         key = jax.random.fold_in(jax.random.key(self.config.seed ^ 0x5EED), done)
+        params = self.learner.params
         for i, name in enumerate(self.config.ued.eval_suites):
-            self._evaluate(Evaluation(done, name, i, self.learner.params,
-                                      jax.random.fold_in(key, i)))
-
-    def _evaluate(self, evaluation: Evaluation) -> None:
-        evaluation.incarnation = self.evaluator_incarnation
-        evaluation.ref = self.workers.evaluator.evaluate.remote(
-            evaluation.index, evaluation.params, evaluation.key)
-        self.evaluations.append(evaluation)
+            # The same parameters and key on a re-run; given up rather than stopping the run.
+            call = Call.of("evaluator", "evaluate", i, params, jax.random.fold_in(key, i),
+                           then=f"its evaluation of {name} after step {done} runs again on "
+                                f"its restart")
+            call.optional = True
+            self.evaluations.append(Evaluation(done, name, self.actors.send(call)))
 
     def log_evaluations(self, writer: SummaryWriter, stream: TextIO | None,
                         block: bool = False) -> None:
         """Log the evaluations that are done. One whose Evaluator died runs again, with the
-        same parameters and key, once the Evaluator is back; after `MAX_CALL_FAILURES` in a
-        row it is given up (logged, `evaluations_lost`) and training goes on."""
+        same parameters and key, once the Evaluator is back; one the ActorManager gives up
+        is counted (`evaluations_lost`) and training goes on."""
         from workers.evaluator import log
 
         waiting, self.evaluations = self.evaluations, []
         for evaluation in waiting:
-            ready, _ = self.ray.wait([evaluation.ref], timeout=None if block else 0)
+            ready, _ = self.ray.wait([evaluation.call.ref], timeout=None if block else 0)
             if not ready:
                 self.evaluations.append(evaluation)
                 continue
             try:
-                result = self.ray.get(evaluation.ref)
-            except self.ray.exceptions.RayActorError as err:
-                self._evaluator_lost(evaluation, err)
+                result = self.ray.get(evaluation.call.ref)
+            except Exception as err:
+                if self.actors.recover(evaluation.call, err):
+                    self.stats.evaluations_rerun += 1
+                    self.actors.send(evaluation.call)
+                    self.evaluations.append(evaluation)
+                else:
+                    self.stats.evaluations_lost += 1
                 continue
             log(writer, evaluation.step * self.config.learner.steps_per_update, result)
             if stream is not None:
@@ -548,28 +532,6 @@ class AsyncRun:
                 stream.flush()
         if block and self.evaluations:  # re-run ones: wait for them too
             self.log_evaluations(writer, stream, block=True)
-
-    def _evaluator_lost(self, evaluation: Evaluation, err: Exception) -> None:
-        what = f"its evaluation of {evaluation.suite} after step {evaluation.step}"
-        evaluation.failures += 1
-        if evaluation.incarnation == self.evaluator_incarnation:  # a new death, not its echo
-            self.evaluator_incarnation += 1
-            gives_up = evaluation.failures >= MAX_CALL_FAILURES
-            self.deaths.saw("evaluator", err, f"{what} {'is lost' if gives_up else 'runs again'}"
-                                              " on its restart")
-            try:
-                wait_restarted(self.ray, self.workers.evaluator, "evaluator")
-            except RunStopped as stopped:
-                self.deaths.saw("evaluator", stopped, "evaluations stop; training goes on")
-                self.workers.evaluator = None
-                self.stats.evaluations_lost += 1 + len(self.evaluations)
-                self.evaluations = []
-                return
-        if evaluation.failures >= MAX_CALL_FAILURES:
-            self.stats.evaluations_lost += 1
-            return
-        self.stats.evaluations_rerun += 1
-        self._evaluate(evaluation)
 
     def record(self) -> dict[str, Any]:
         """What `ray.json` keeps of the schedule: batches, re-scores, the staleness histogram."""
@@ -596,13 +558,11 @@ class AsyncRun:
             self.collect(block=True)
 
     def _submit(self, batch: Batch) -> None:
-        ued = self.config.ued
-        actor = self.scorers[batch.explorer]
-        ref = actor.score_levels.remote(self.learner.params, batch.levels, batch.key, ued.score,
-                                        None, None)
+        """Send (again) `batch`'s scoring to its Explorer, with the current policy."""
+        batch.version = self.learner.version
+        ref = self.actors.send(batch.score).ref
         self.pending[ref] = batch
         self.inflight[batch.explorer] += 1
-        batch.incarnation = self.incarnation[batch.explorer]
 
     def explore(self, learner: RemoteLearner, step: int, request: LevelRequest,
                 key: jax.Array) -> tuple[None, None]:
@@ -610,8 +570,15 @@ class AsyncRun:
         (`request`), an Explorer scores them; the driver holds only the refs. Committed when
         the result arrives (`collect`)."""
         i = self._free_explorer()
-        batch = Batch(step, request, None, key, learner.version, i)
-        self._ask_for_levels(batch)
+        levels = self.actors.send(Call.of(SERVICE, request.method, *request.args))
+        batch = Batch(step, request, key, learner.version, i, levels)
+        score = self.config.ued.score
+        # Rebuilt at every sending: the current policy, the levels as asked for last (the
+        # closure holds the levels' call, not the batch: no cycle keeps refs alive).
+        batch.score = Call(self.names[i], "score_levels",
+                           lambda: (self.learner.params, levels.ref, key, score, None, None),
+                           then="its batches are re-issued with the current policy on its "
+                                "restart", after=(levels,))
         self.ledger[step] = "issued"
         self._submit(batch)
         return None, None
@@ -625,32 +592,14 @@ class AsyncRun:
         self.ledger[step] = "committed"
         return out
 
-    def _ask_for_levels(self, batch: Batch) -> None:
-        request = batch.request
-        batch.levels = getattr(self.workers.service, request.method).remote(*request.args)
-        batch.levels_incarnation = self.service.incarnation
-
-    def _levels_lost(self, batch: Batch) -> bool:
-        """Whether the levels of `batch` died with the service (asked for before its restart
-        and never made)."""
-        if batch.levels_incarnation == self.service.incarnation:
-            return False
-        self.ray.wait([batch.levels], timeout=RESTART_WAIT_S)
-        try:
-            self.ray.get(batch.levels, timeout=0)
-        except self.ray.exceptions.RayError:
-            return True
-        batch.levels_incarnation = self.service.incarnation  # made before the death: kept
-        return False
-
     def ask_again_for_lost_levels(self) -> None:
         """After a restart of the service: ask again, in step order and before anything else,
         for the levels of every batch that died with it. Same calls, same keys: the restored
         service makes the same levels (an ACCEL parent is still in the buffer, since the
         inserts after it run after it, as before)."""
         for batch in sorted(self.pending.values(), key=lambda b: b.step):
-            if self._levels_lost(batch):
-                self._ask_for_levels(batch)
+            if self.actors.lost_with_restart(batch.levels):
+                self.actors.send(batch.levels)
 
     def collect(self, block: bool) -> None:
         """Commit the explorer results that are ready (wait for one if `block`)."""
@@ -666,55 +615,32 @@ class AsyncRun:
             self.inflight[batch.explorer] -= 1
             try:
                 _, scores, best = self.ray.get(ref)
-            except self.ray.exceptions.RayActorError as err:
+            except Exception as err:
                 self.reissue(batch, err)
                 continue
-            batch.failures = 0
+            batch.score.failures = 0
             lag = self.learner.version - batch.version
             if lag > self.config.ray.max_policy_lag:
                 # Too old to trust: score the same levels again with the current policy.
                 self.stats.rescored += 1
-                batch.version, batch.rescored = self.learner.version, batch.rescored + 1
+                batch.rescored += 1
                 self._submit(batch)
                 continue
             self.commit(batch, scores, best, lag)
 
     def reissue(self, batch: Batch, err: Exception) -> None:
-        """The Explorer of `batch` died with it: submit the batch again, with the current
-        parameters (Ray's own retry would reuse the old ones), to the Explorer's restart. Or
-        the service died before it made the batch's levels: ask for them again, then submit."""
-        if is_actor(err, self.workers.service):
-            self.service.restarted(err, batch.levels_incarnation)
-            if self._levels_lost(batch):
-                self._ask_for_levels(batch)
-            batch.failures += 1
-            if batch.failures >= MAX_CALL_FAILURES:
-                raise RunStopped(f"the levels of step {batch.step} were lost with the service "
-                                 f"{MAX_CALL_FAILURES} times in a row ({death_cause(err)})")
-            self.stats.reissued += 1
-            batch.version = self.learner.version
-            self._submit(batch)
-            return
-        if self.names[batch.explorer] == "learner":
-            raise err  # the learner is not restarted: the run stops
-        i = batch.explorer
-        if batch.incarnation == self.incarnation[i]:  # a new death, not its echo
-            self.incarnation[i] += 1
-            self.deaths.saw(self.names[i], err, "its batches are re-issued with the current "
-                                                "policy on its restart")
-            t0 = time.perf_counter()
-            wait_restarted(self.ray, self.scorers[i], self.names[i])
-            self.stats.wait_for_levels_s += time.perf_counter() - t0
-        batch.failures += 1
-        if batch.failures >= MAX_CALL_FAILURES:
-            raise RunStopped(f"batch of step {batch.step} lost its Explorer "
-                             f"{MAX_CALL_FAILURES} times in a row ({death_cause(err)})")
+        """`batch` was lost (its Explorer died, or the service before it made the levels): once
+        the ActorManager has the actor back, submit it again with the current parameters (Ray's
+        own retry would reuse the old ones); levels lost with the service are asked for
+        again first (`ActorManager.send`)."""
+        t0 = time.perf_counter()
+        self.actors.recover(batch.score, err)  # raises where the run stops
+        self.stats.wait_for_levels_s += time.perf_counter() - t0
         self.stats.reissued += 1
-        batch.version = self.learner.version
         self._submit(batch)
 
     def commit(self, batch: Batch, scores: np.ndarray, best: np.ndarray, lag: int) -> None:
-        self.run.commit(batch.request, batch.levels, scores, best, batch.version)
+        self.run.commit(batch.request, batch.levels.ref, scores, best, batch.version)
         self.ledger[batch.step] = "committed"
         self.stats.committed += 1
         self.stats.staleness[lag] += 1
@@ -739,6 +665,18 @@ def driver_refs(ray: Any) -> int:
     """Object refs this process holds (`ray/driver_refs`): flat over a healthy run, whatever
     its length; a count that grows with the steps is a leak (objects pinned in the store)."""
     return len(ray._private.worker.global_worker.core_worker.get_all_reference_counts())
+
+
+def stop_reason(ray: Any, err: BaseException) -> str | None:
+    """Why the run stops where `err` means it cannot go on but can be resumed: a RunStopped
+    (a learner lost, a call's failure budget spent, an actor not back) or a loss the
+    ActorManager did not see (an actor or node lost at start-up, the driver's own raylet);
+    None for any other error."""
+    if isinstance(err, RunStopped):
+        return str(err)
+    if is_lost(ray, err) or isinstance(err, ray.exceptions.LocalRayletDiedError):
+        return f"an actor of the run died ({death_cause(err)})"
+    return None
 
 
 def need_ued(config: TrainConfig) -> None:
@@ -792,21 +730,17 @@ class RayDriver(Driver):
                                  stream=stream, callback=callback)
             record.update(status="finished")
             return run_dir
-        except ray.exceptions.RayActorError as err:
-            cause = death_cause(err)
-            stream.write(f"ray: an actor died: {cause}\n")
+        except BaseException as err:
+            reason = stop_reason(ray, err)
+            if reason is None:  # an error or Ctrl-C: the record says the run is over
+                if record.data:
+                    record.update(status="stopped", error=f"{type(err).__name__}: {err}")
+                raise
+            stream.write(f"ray: the run stops: {reason}\n")
             stream.flush()
-            record.update(status="stopped", error=f"an actor died: {cause}")
-            raise RunStopped(f"{run_dir}: an actor of the run died ({cause}); continue from the "
-                             f"last checkpoint with: tabx train --resume {run_dir}") from err
-        except RunStopped as err:
-            record.update(status="stopped", error=str(err))
-            raise RunStopped(f"{run_dir}: {err}; continue from the last checkpoint with: "
+            record.update(status="stopped", error=reason)
+            raise RunStopped(f"{run_dir}: {reason}; continue from the last checkpoint with: "
                              f"tabx train --resume {run_dir}") from err
-        except BaseException as err:  # an error or Ctrl-C: the record says the run is over
-            if record.data:
-                record.update(status="stopped", error=f"{type(err).__name__}: {err}")
-            raise
         finally:
             if workers is not None:
                 for actor in workers.all():
@@ -828,11 +762,14 @@ class RayRunner(Runner):
         super().__init__(config)
         self.ray, self.workers, self.record, self.stream = ray, workers, record, stream
         self.deaths = ActorDeaths(stream)  # logged even when quiet: a death is news
-        self.service = RemoteService(ray, workers.service, self.deaths)
-        evaluators = [RemoteEvaluator(ray, workers.evaluator, i, name, self.deaths)
+        # Every call to the run's actors goes through one manager (restarts, re-issue).
+        self.actors = ActorManager(ray, self.deaths)
+        workers.register(self.actors)
+        self.service = RemoteService(ray, workers.service, self.actors)
+        evaluators = [RemoteEvaluator(ray, workers.evaluator, i, name, self.actors)
                       for i, name in enumerate(config.ued.eval_suites)]
-        self.run = UEDRun(config, self.service, workers.explorer_pool(ray, self.deaths),
-                          evaluators)
+        pool = ExplorerPool(ray, workers.scorers(), workers.scorer_names(), self.actors)
+        self.run = UEDRun(config, self.service, pool, evaluators)
         self.deterministic = config.ray.deterministic
         self.version, self.start = 0, 0
         self.counts = {b: 0 for b in Branch}  # this session's steps per branch
@@ -850,25 +787,25 @@ class RayRunner(Runner):
         return self.service.buffer_size() is not None
 
     def init(self, key: jax.Array) -> None:
-        self.ray.get(self.workers.learner.init.remote(key))
+        self.actors.call("learner", "init", key)
 
     def template(self) -> Any:
-        return self.ray.get(self.workers.learner.train_state.remote())
+        return self.actors.call("learner", "train_state")
 
     def restore(self, run_dir: Path, train_state: Any, start: int) -> None:
         self.version = self.run.resume(run_dir, start)
-        self.ray.get(self.workers.learner.set_train_state.remote(train_state, self.version))
+        self.actors.call("learner", "set_train_state", train_state, self.version)
 
     def begin(self, start: int) -> None:
         ray, workers, config = self.ray, self.workers, self.config
         self.start = start
-        self.learner = RemoteLearner(ray, workers.learner, self.version)
+        self.learner = RemoteLearner(ray, workers.learner, self.version, self.actors)
         placement = workers.placement(ray)
         self.record.update(mode="deterministic" if self.deterministic else "asynchronous",
                            learner_gpus=workers.gpus, placement=placement, steps=[start, start],
                            total_steps=config.learner.num_updates)
         self.asynchronous = None if self.deterministic else AsyncRun(
-            ray, config, self.run, self.learner, workers, self.service, self.deaths)
+            ray, config, self.run, self.learner, workers, self.service)
         self.chaos = Chaos(ray, config.ray, list(zip(workers.names(), workers.all(),
                                                      strict=True)), self.stream)
 
@@ -943,11 +880,14 @@ class RayRunner(Runner):
             self.asynchronous.drain()
             self.asynchronous.log_evaluations(output.writer, output.notes, block=True)
         try:  # where the actors ended (a restarted one may have moved)
-            for name, actor in zip(workers.names(), workers.all(), strict=True):
-                if name.startswith("explorer") or name == "evaluator":
-                    wait_restarted(ray, actor, name, timeout_s=60)
+            for name in workers.names():
+                restarts = name.startswith("explorer") or name == "evaluator"
+                if restarts and self.actors.available(name):
+                    self.actors.wait_back(name, timeout_s=60)
             placement_end = workers.placement(ray)
-        except (ray.exceptions.RayActorError, RunStopped):
+        except Exception as err:
+            if not (isinstance(err, RunStopped) or is_lost(ray, err)):
+                raise
             placement_end = None
         self.record.update(placement_end=placement_end, steps=[self.start, stop],
                            chaos_kills=self.chaos.kills, **self.schedule_fields())

@@ -1,9 +1,9 @@
-"""Deaths and restarts of a Ray run's actors, as the driver sees them.
+"""What a restart of each actor of a Ray run loses, the level service's numbered calls, and chaos
+kills to check a cluster's restarts.
 
-Ray restarts a dead actor by running its constructor again (`max_restarts`); calls sent while it
-restarts fail, and a call Ray retried would reuse its original arguments, so the driver never
-lets Ray retry (`max_task_retries=0`): it waits for the restart and sends the call again itself,
-with what the schedule asks for now. What a restart loses depends on the actor:
+Every call to an actor goes through the run's `workers.actor_manager.ActorManager`, which waits
+for a restart once per death and sends lost calls again. What a restart loses depends on the
+actor:
 
     Explorer, Evaluator  nothing (their parameters come with each call): calls run again
     LevelService         nothing acknowledged: it replays its commit log on restart
@@ -16,93 +16,39 @@ with what the schedule asks for now. What a restart loses depends on the actor:
 from __future__ import annotations
 
 import time
-from collections import Counter
 from collections.abc import Callable
 from typing import Any, TextIO
 
-from workers.driver import RunStopped
+from workers.actor_manager import ActorDeaths, ActorManager
 from workers.durable_service import MUTATING
 
-MAX_CALL_FAILURES = 5  # one call failing this often in a row stops the run
-
-
-def death_cause(err: Exception) -> str:
-    """The first line of an actor error: what Ray says killed it."""
-    text = str(err).strip()
-    return text.splitlines()[0] if text else type(err).__name__
-
-
-class ActorDeaths:
-    """Deaths of the restartable actors (Explorers, the Evaluator): counted by name and
-    logged with their cause on the run's stream."""
-
-    def __init__(self, stream: TextIO | None):
-        self.stream, self.count = stream, Counter()
-
-    def saw(self, name: str, err: Exception, then: str) -> None:
-        self.count[name] += 1
-        if self.stream is not None:
-            self.stream.write(f"ray: {name} died ({death_cause(err)}); {then}\n")
-            self.stream.flush()
-
-
-RESTART_TIMEOUT_S = 300.0  # an actor not back after this long stops the run
-
-
-def wait_restarted(ray: Any, actor: Any, name: str,
-                   timeout_s: float = RESTART_TIMEOUT_S) -> None:
-    """Wait until a restarting actor answers again: calls sent while it restarts fail ("the
-    actor is restarting") rather than wait for it."""
-    deadline = time.perf_counter() + timeout_s
-    while True:
-        try:
-            ray.get(actor.ready.remote(), timeout=max(deadline - time.perf_counter(), 0.1))
-            return
-        except ray.exceptions.ActorUnavailableError:
-            if time.perf_counter() > deadline:
-                break
-            time.sleep(0.2)
-        except (ray.exceptions.ActorDiedError, ray.exceptions.GetTimeoutError) as err:
-            raise RunStopped(f"{name} did not come back ({death_cause(err)}); raise "
-                             f"ray.actor_restarts (-1: no limit)") from err
-    raise RunStopped(f"{name} did not come back within {timeout_s:.0f} s")
-
-
-def call_restarting(ray: Any, actor: Any, name: str, method: str, args: tuple,
-                    deaths: ActorDeaths | None) -> Any:
-    """`actor.method(*args)`, waited for; where the actor dies (and `deaths` says it may be
-    restarted) the same call runs again on its restart. Without `deaths` an error raises."""
-    for _ in range(MAX_CALL_FAILURES):
-        try:
-            return ray.get(getattr(actor, method).remote(*args))
-        except ray.exceptions.RayActorError as err:
-            if deaths is None:
-                raise
-            deaths.saw(name, err, f"{method} runs again on its restart")
-            wait_restarted(ray, actor, name)
-            error = err
-    raise RunStopped(f"{name}: {method} failed {MAX_CALL_FAILURES} times in a row "
-                     f"({death_cause(error)})")
-
-
-def is_actor(err: Exception, actor: Any) -> bool:
-    """Whether an actor error is about `actor` (a call that needed one of its results fails
-    with the error of the actor that should have produced it)."""
-    return getattr(err, "actor_id", None) == actor._actor_id.hex()
+SERVICE = "service"  # the level service's name in the run's ActorManager
 
 
 class RemoteService:
     """The LevelService actor behind `LevelService`'s interface: every call waits. A call that
     finds the service dead waits for its restart (which restores every logged commit), runs the
     `on_restart` hooks (the asynchronous schedule asks again for levels that died with it), and
-    is sent again. State-changing calls carry a sequence number (`apply`), so that one the
-    service had logged before it died is answered, not applied again."""
+    is sent again (`ActorManager`). State-changing calls carry a sequence number (`apply`), so
+    that one the service had logged before it died is answered, not applied again.
 
-    def __init__(self, ray: Any, actor: Any, deaths: ActorDeaths):
-        self._ray, self.actor, self._deaths = ray, actor, deaths
+    `actors`: the run's ActorManager, or an ActorDeaths for a manager of the service alone."""
+
+    def __init__(self, ray: Any, actor: Any, actors: ActorManager | ActorDeaths):
+        self.actors = actors if isinstance(actors, ActorManager) else ActorManager(ray, actors)
+        self.actor = actor
+        self._member = self.actors.add(SERVICE, actor, restarts=True, then=(
+            "it restarts from its snapshot and commit log"))
         self.seq = 0
-        self.incarnation = 0  # restarts seen
-        self.on_restart: list[Callable[[], None]] = []
+
+    @property
+    def incarnation(self) -> int:
+        """Restarts of the service handled so far."""
+        return self._member.incarnation
+
+    @property
+    def on_restart(self) -> list[Callable[[], None]]:
+        return self._member.on_restart
 
     def __getattr__(self, name: str) -> Callable[..., Any]:
         if name.startswith("_"):
@@ -115,29 +61,7 @@ class RemoteService:
         return lambda *args, **kwargs: self.call(name, *args, **kwargs)
 
     def call(self, method: str, *args: Any, **kwargs: Any) -> Any:
-        error: Exception | None = None
-        for _ in range(MAX_CALL_FAILURES):
-            incarnation = self.incarnation
-            try:
-                return self._ray.get(getattr(self.actor, method).remote(*args, **kwargs))
-            except self._ray.exceptions.RayActorError as err:
-                if not is_actor(err, self.actor):
-                    raise
-                self.restarted(err, incarnation)
-                error = err
-        raise RunStopped(f"service: {method} failed {MAX_CALL_FAILURES} times in a row "
-                         f"({death_cause(error)})")
-
-    def restarted(self, err: Exception, incarnation: int) -> None:
-        """Handle a death seen by something sent at `incarnation`: once per death, wait for
-        the restart and run the hooks."""
-        if incarnation != self.incarnation:
-            return  # an echo of a death already handled
-        self._deaths.saw("service", err, "it restarts from its snapshot and commit log")
-        wait_restarted(self._ray, self.actor, "service")
-        self.incarnation += 1
-        for hook in self.on_restart:
-            hook()
+        return self.actors.call(SERVICE, method, *args, **kwargs)
 
 
 class Chaos:
@@ -174,5 +98,4 @@ class Chaos:
             self.stream.flush()
 
 
-__all__ = ["Chaos", "MAX_CALL_FAILURES", "ActorDeaths", "RemoteService", "call_restarting",
-           "death_cause", "is_actor", "wait_restarted"]
+__all__ = ["SERVICE", "Chaos", "RemoteService"]
