@@ -6,6 +6,7 @@ lets Ray retry (`max_task_retries=0`). Every call goes through one `ActorManager
 knows which actor each call went to and which incarnation of that actor it reached, waits for a
 restart once per death (however many calls the death took), and sends a lost call again with
 arguments its caller rebuilds then (`Call.args`: the current policy, levels asked for again).
+It plays the part RLlib's FaultTolerantActorManager plays for RLlib's env runners.
 
 A call is lost when `ray.get` raises one of these (`is_lost`):
 
@@ -26,7 +27,8 @@ with that actor's error when that actor died first, so the loss is that actor's.
 What a loss does depends on the actor (`Member.restarts`) and the call (`Call.optional`):
 
     restartable actor   the death is logged once (`ray: NAME died (CAUSE); THEN`) and counted
-                        (`ActorDeaths`, `restarts` in `ray.json`); the manager waits until the
+                        (`ActorDeaths`, `restarts` in `ray.json`; a lost result is logged
+                        as `NAME lost a result` and not counted); the manager waits until the
                         actor answers again, runs its restart hooks, and the caller sends the
                         call again (`send`)
     actor not restarted the learner: RunStopped (the driver adds the resume command)
