@@ -18,7 +18,7 @@ from test_learners_helpers import tiny_config
 from level_buffer import LevelBuffer
 from tabx.compile_counter import CompileCounter
 from ued.config import ConfigError, config_from_dict
-from ued.curricula import ACCEL, PLR, SFL, Branch, DomainRandomization, make_curriculum
+from ued.curricula import ACCEL, PLR, SFL, Branch, DomainRandomization
 from ued.run_folder import LEVELS_DIR
 from workers.learner import LearnerWorker
 from workers.level_service import snapshot_steps
@@ -68,9 +68,12 @@ def test_which_branches_learn():
     assert not accel.learns(Branch.NEW) and not accel.learns(Branch.MUTATE)
     assert accel.learns(Branch.REPLAY) and dr.learns(Branch.NEW)
     assert PLR(robust=True, exploratory_grad_updates=True).learns(Branch.NEW)
-    assert make_curriculum("robust_plr").name == "robust_plr"
+    from ued.config import UEDSection
+    from ued.registry import curriculum_for
+
+    assert curriculum_for(UEDSection(method="robust_plr")).name == "robust_plr"
     with pytest.raises(ValueError, match="unknown UED method 'plr2'"):
-        make_curriculum("plr2")
+        curriculum_for(UEDSection(method="plr2"))
 
 
 def test_sfl_refreshes_every_update_freq_steps():

@@ -170,18 +170,4 @@ class SFL(Curriculum):
         return step % self.update_freq == 0
 
 
-def make_curriculum(method: str, exploratory_grad_updates: bool | None = None,
-                    sfl_update_freq: int = 64) -> Curriculum:
-    """The curriculum registered as `method` (`ued.registry`) with these settings and the
-    other `ued:` settings at their defaults; `exploratory_grad_updates` (None: the method's
-    own) only matters for PLR, Robust PLR and ACCEL."""
-    from ued.config import UEDSection
-    from ued.registry import curriculum_for
-
-    return curriculum_for(UEDSection(method=method,
-                                     exploratory_grad_updates=exploratory_grad_updates,
-                                     sfl_update_freq=sfl_update_freq))
-
-
-__all__ = ["ACCEL", "PLR", "SFL", "Branch", "Curriculum", "DomainRandomization", "RobustPLR",
-           "make_curriculum"]
+__all__ = ["ACCEL", "PLR", "SFL", "Branch", "Curriculum", "DomainRandomization", "RobustPLR"]
