@@ -4,13 +4,13 @@
     tabx rollout [NAME] [--ally RUN_DIR|CONTROLLER] ...          tabx_ued.rollout
     tabx editor                                                  tabx_ued.editor
     tabx bench env | profile | scale | reconfig | compare | train | ued      tabx_bench.cli
-    tabx buffer ...                                              level_buffer.cli
-    tabx levels sample                                           ued.levels_cli
-    tabx plot                                                    ued.plot
+    tabx buffer ...                                              tabx_ued.buffer_commands
+    tabx levels sample                                           tabx_ued.levels_commands
+    tabx plot                                                    tabx_ued.analysis_commands
     tabx train, tabx eval                                        tabx_ued.train_eval_commands
     tabx eval heuristics                                         tabx_ued.heuristics
-    tabx eval payoff                                             ued.payoff
-    tabx analyse value-error                                     ued.value_error
+    tabx eval payoff                                             tabx_ued.analysis_commands
+    tabx analyse value-error                                     tabx_ued.analysis_commands
     tabx runs status | buffer                                    tabx_ued.run_folder_commands
 """
 
@@ -18,17 +18,18 @@ from __future__ import annotations
 
 import argparse
 
-from level_buffer import cli as buffer_cli
 from tabx_bench import cli as bench_cli
 from tabx_ued import (
+    analysis_commands,
+    buffer_commands,
     editor,
     heuristics,
+    levels_commands,
     rollout,
     run_folder_commands,
     scenarios,
     train_eval_commands,
 )
-from ued import levels_cli, payoff, plot, value_error
 
 
 def add_commands(subparsers: argparse._SubParsersAction) -> None:
@@ -37,17 +38,17 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     rollout.add_parser(subparsers)
     bench_cli.add_parser(subparsers)
     editor.add_parser(subparsers)
-    buffer_cli.add_parser(subparsers)
+    buffer_commands.add_parser(subparsers)
     train_eval_commands.add_parser(subparsers)
     run_folder_commands.add_parser(subparsers)
-    levels_cli.add_parser(subparsers)
-    plot.add_parser(subparsers)
-    value_error.add_parser(subparsers)
+    levels_commands.add_parser(subparsers)
+    analysis_commands.add_plot_parser(subparsers)
+    analysis_commands.add_analyse_parser(subparsers)
 
 
 # `tabx eval WORD ...` routes beside `tabx eval RUN_DIR`.
 ROUTES = {("eval", "heuristics"): heuristics.add_route_parser,
-          ("eval", "payoff"): payoff.add_route_parser}
+          ("eval", "payoff"): analysis_commands.add_payoff_route_parser}
 
 
 __all__ = ["ROUTES", "add_commands"]

@@ -25,7 +25,7 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 
 def cmd_buffer(args: argparse.Namespace) -> int:
-    from level_buffer.cli import summary
+    from tabx_ued.buffer_commands import summary
     from workers.ray_live import live_buffer
 
     buffer, size = live_buffer(args.run_dir)

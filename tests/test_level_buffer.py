@@ -408,7 +408,7 @@ def test_envparams_levels():
 def test_batched_ops_at_plr_scale_are_cheap():
     """128-level batches on a full 4000-level buffer (measured: insert ~7 ms, sample ~5 ms,
     update < 0.1 ms); loose bounds for busy machines."""
-    from level_buffer.bench import run
+    from tabx_bench.level_buffer import run
 
     for near in (False, True):
         t = run(repeats=5, near_duplicates=near)

@@ -1,6 +1,6 @@
 """`tabx buffer ...`: output of every action and clear user errors. One test goes through
 `tabx_ued.cli.main` (the registrar is found and wired); the others use a parser holding only
-`level_buffer.cli`, so that sibling registrars being edited cannot break these tests."""
+`tabx_ued.buffer_commands`, so that sibling registrars being edited cannot break these tests."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ import pytest
 
 import tabx_ued.cli as tabx_cli
 from level_buffer import LevelBuffer, Source
-from level_buffer import cli as buffer_cli
 from tabx.errors import UserError
+from tabx_ued import buffer_commands as buffer_cli
 
 
 @pytest.fixture

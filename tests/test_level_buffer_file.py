@@ -199,7 +199,7 @@ def test_inconsistent_contents_with_valid_checksum_are_refused():
 def test_full_4000_buffer_save_load_is_fast(tmp_path):
     import time
 
-    from level_buffer.bench import random_levels, toy_level
+    from tabx_bench.level_buffer import random_levels, toy_level
 
     rng = np.random.default_rng(0)
     buf = LevelBuffer(toy_level(), capacity=4000)

@@ -28,14 +28,12 @@ scenario, and the mean when there are several).
 
 from __future__ import annotations
 
-import argparse
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from tabx.errors import UserError
 from tabx.params import EnvConfig
 from ued.config import ConfigError
 
@@ -227,67 +225,5 @@ def plot_payoff(table: PayoffTable, out: str | Path) -> Path:
     return save_figure(fig, out, bbox_inches="tight")
 
 
-def cmd_payoff(args: argparse.Namespace) -> int:
-    from tabx.files import atomic_write_json
-    from ued import compile_cache
-
-    if (args.scenario is None) == (args.suite is None):
-        raise UserError("give one of --scenario NAME or --suite NAME_OR_FILE")
-    tiers = [t.strip() for t in (args.tiers or "").split(",") if t.strip()]
-    try:
-        if args.suite is not None:
-            from ued.suites import load_suite
-
-            scenarios = list(load_suite(args.suite).scenarios)
-        else:
-            scenarios = [args.scenario]
-        compile_cache.enable()
-        table = payoff_table(args.runs, tiers, scenarios, episodes=args.episodes,
-                             seed=args.seed, greedy=args.greedy, max_steps=args.max_steps,
-                             checkpoint=args.checkpoint)
-    except ConfigError as err:
-        raise UserError(str(err)) from None
-    print(table.format())
-    out = Path(args.out)
-    json_path = out.with_name(out.name + ".json")
-    png_path = out.with_name(out.name + ".png")
-    json_path.parent.mkdir(parents=True, exist_ok=True)
-    data = {"runs": [str(r) for r in args.runs], "tiers": tiers, "seed": args.seed,
-            "greedy": args.greedy, **table.to_json()}
-    atomic_write_json(json_path, data)
-    plot_payoff(table, png_path)
-    print(f"wrote {json_path} and {png_path}")
-    return 0
-
-
-def add_route_parser(subparsers: argparse._SubParsersAction) -> None:
-    """`tabx eval payoff ...` (a route beside `tabx eval RUN_DIR`, see tabx.cli.ROUTES)."""
-    p = subparsers.add_parser(
-        "payoff", help="policy-vs-policy payoff table of runs and scripted tiers",
-        description="Play every pairing of the given run folders and scripted controllers, "
-                    "each on the ally team against each on the enemy team (a policy plays "
-                    "either team), and write the ally win-rate matrix as JSON and a heatmap.")
-    p.add_argument("runs", nargs="*", metavar="RUN_DIR", help="run folders (any algorithm)")
-    p.add_argument("--tiers", metavar="LIST",
-                   help="comma-separated scripted sides, e.g. heuristic:novice,"
-                        "heuristic:medium,random")
-    p.add_argument("--scenario", help="the scenario every pairing plays")
-    p.add_argument("--suite", metavar="NAME_OR_FILE",
-                   help="play the distinct scenarios of an evaluation suite instead")
-    p.add_argument("--episodes", type=int, default=DEFAULT_EPISODES,
-                   help=f"episodes per cell (default {DEFAULT_EPISODES})")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--greedy", action="store_true",
-                   help="take the most likely action instead of sampling")
-    p.add_argument("--checkpoint", type=int,
-                   help="checkpoint (update number) of every run (default: each run's newest)")
-    p.add_argument("--max-steps", type=int, default=512,
-                   help="episode limit when only tiers play (default 512)")
-    p.add_argument("--out", default="payoff",
-                   help="output path without extension: writes OUT.json and OUT.png "
-                        "(default payoff)")
-    p.set_defaults(func=cmd_payoff)
-
-
-__all__ = ["PayoffTable", "add_route_parser", "cmd_payoff", "payoff_table", "plot_payoff",
+__all__ = ["PayoffTable", "payoff_table", "plot_payoff",
            "side_labels"]

@@ -17,7 +17,6 @@ in which no episode ended, is not logged). `RUN_DIR/seed-<s>` plots that seed al
 
 from __future__ import annotations
 
-import argparse
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -168,25 +167,5 @@ def save_figure(fig: Any, out: str | Path, dpi: int = 120, **savefig: Any) -> Pa
     return atomic_write_bytes(out, buffer.getvalue())
 
 
-def cmd_plot(args: argparse.Namespace) -> int:
-    if not args.out.lower().endswith(".png"):
-        raise UserError(f"--out must name a .png file, got {args.out!r}")
-    tags = list(plot_runs(load_runs(args.runs), args.tag or list(DEFAULT_TAGS), args.out))
-    print(f"wrote {len(tags)} panels ({', '.join(tags)}) to {args.out}")
-    return 0
-
-
-def add_parser(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("plot", help="learning curves of run folders as a PNG")
-    p.add_argument("runs", nargs="+", metavar="RUN_DIR",
-                   help="run folders (tabx train); a multi-seed run draws its seeds' mean and "
-                        "standard error, RUN_DIR/seed-<s> one seed")
-    p.add_argument("--tag", action="append", metavar="TAG",
-                   help="a scalar tag to plot (repeatable; * matches, e.g. 'eval/*/mean_win_rate'"
-                        f"); default: {', '.join(DEFAULT_TAGS)}")
-    p.add_argument("--out", required=True, help="PNG file to write")
-    p.set_defaults(func=cmd_plot)
-
-
-__all__ = ["DEFAULT_TAGS", "Curve", "add_parser", "curve", "load_runs", "matching",
+__all__ = ["DEFAULT_TAGS", "Curve", "curve", "load_runs", "matching",
            "plot_runs", "save_figure", "seed_folders"]

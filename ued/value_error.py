@@ -24,7 +24,6 @@ at the episode's end (at most the episode limit); the reward after the end is ze
 
 from __future__ import annotations
 
-import argparse
 import functools
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,7 +35,6 @@ import numpy as np
 
 from tabx.episodes import LOOP_KEYS, Policy, sample
 from tabx.episodes import play as play_episodes
-from tabx.errors import UserError
 from tabx.params import EnvParams, repeat_level
 from ued.config import ConfigError
 from ued.learners.ppo import PPOLearner, masked_logits
@@ -255,69 +253,5 @@ def plot_value_errors(records: list[dict], out: str | Path, by: str = "algorithm
     return save_figure(fig, out, bbox_inches="tight")
 
 
-def cmd_value_error(args: argparse.Namespace) -> int:
-    from tabx.files import atomic_write_json
-    from ued import compile_cache
-
-    for name in ("states", "rollouts", "horizon"):
-        if getattr(args, name) < 1:
-            raise UserError(f"--{name} must be >= 1, got {getattr(args, name)}")
-    compile_cache.enable()
-    try:
-        records = analyse_runs(args.runs, args.scenario, args.states, args.rollouts,
-                               args.horizon, args.seed, args.checkpoint)
-    except ConfigError as err:
-        raise UserError(str(err)) from None
-    print(f"value error |V - V*|: {args.states} states x {args.rollouts} rollouts "
-          f"(95 % interval over states; MC stderr: the noise of V*)")
-    print(f"  {'run':40s} {'scenario':22s} {'|V - V*|':>18s} {'V':>8s} {'V*':>8s} "
-          f"{'MC stderr':>9s}")
-    for r in records:
-        run = f"{Path(r['run']).name} ({r['algorithm']})"
-        print(f"  {run:40s} {r['scenario']:22s} {r['mean_abs_error']:9.4f} ± "
-              f"{r['ci95']:6.4f} {r['mean_value']:8.4f} {r['mean_mc_value']:8.4f} "
-              f"{r['mean_mc_stderr']:9.4f}")
-    if args.json:
-        atomic_write_json(args.json, {"states": args.states, "rollouts": args.rollouts,
-                                      "horizon": args.horizon, "seed": args.seed,
-                                      "results": records})
-        print(f"wrote {args.json}")
-    if args.plot:
-        plot_value_errors(records, args.plot, args.by)
-        print(f"wrote {args.plot}")
-    return 0
-
-
-def add_parser(subparsers: argparse._SubParsersAction) -> None:
-    """`tabx analyse value-error`."""
-    analyse = subparsers.add_parser("analyse", help="analyses of trained policies",
-                                    description="Analyses of trained policies.")
-    sub = analyse.add_subparsers(dest="analysis", metavar="ANALYSIS")
-    sub.required = True
-    p = sub.add_parser(
-        "value-error", help="value estimation error |V - V*| against Monte-Carlo values",
-        description="Estimate V* by Monte-Carlo continuations from states of the policy's "
-                    "own rollouts (recurrent state restored) and report mean |V - V*| per "
-                    "run and scenario (the paper's value-error protocol).")
-    p.add_argument("runs", nargs="+", metavar="RUN_DIR", help="run folders")
-    p.add_argument("--scenario", action="append",
-                   help="scenario to analyse (repeatable; default: each run's own)")
-    p.add_argument("--states", type=int, default=DEFAULT_STATES,
-                   help=f"kept states, one per rollout env (default {DEFAULT_STATES})")
-    p.add_argument("--rollouts", type=int, default=DEFAULT_ROLLOUTS,
-                   help=f"Monte-Carlo continuations per state (default {DEFAULT_ROLLOUTS})")
-    p.add_argument("--horizon", type=int, default=DEFAULT_HORIZON,
-                   help=f"steps of the rollout the states are drawn from (default "
-                        f"{DEFAULT_HORIZON})")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--checkpoint", type=int, help="checkpoint of every run (default: newest)")
-    p.add_argument("--json", metavar="OUT", help="also write the results as JSON")
-    p.add_argument("--plot", metavar="PNG", help="also draw the per-scenario comparison")
-    p.add_argument("--by", choices=("algorithm", "run"), default="algorithm",
-                   help="bars of the plot: one per algorithm, pooling its runs (seeds) as mean "
-                        "and standard error (default), or one per run")
-    p.set_defaults(func=cmd_value_error)
-
-
-__all__ = ["ValueErrorEstimate", "add_parser", "analyse_runs", "cmd_value_error",
+__all__ = ["ValueErrorEstimate", "analyse_runs",
            "group_records", "plot_value_errors", "value_error"]

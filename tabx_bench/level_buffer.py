@@ -1,4 +1,4 @@
-"""Timings of the level buffer at PLR scale: `python -m level_buffer.bench`.
+"""Timings of the level buffer at PLR scale: `python -m tabx_bench.level_buffer`.
 
 A full buffer of 4000 levels with 20 leaves shaped like TABX unit / zone slots (up to (20, 2)),
 batches of 128: insert_batch (fresh levels, some duplicates), sample, update_batch, and

@@ -9,7 +9,7 @@
     tabx buffer render FILE --id ID --out level.png   a TABX level's start state as a PNG
 
 Files are read without a template, so any buffer file can be inspected. Registered by
-`tabx.cli` through `add_parser(subparsers)`.
+`tabx_ued.commands` through `add_parser(subparsers)`.
 """
 
 from __future__ import annotations
