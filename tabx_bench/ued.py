@@ -331,10 +331,12 @@ class RestartResult:
 
 
 def bench_restart(ray: Any, config: TrainConfig, compile_cache: bool,
-                  stream: TextIO) -> RestartResult:
+                  stream: TextIO, cache_dir: str | None = None) -> RestartResult:
     """Start an Explorer, score a batch, kill its process (`ray.kill`, restart allowed), and
     time its return. With `compile_cache` the actor reads and writes a fresh persistent
-    compilation cache (so the restart finds what the first life compiled), else none."""
+    compilation cache (so the restart finds what the first life compiled), else none;
+    `cache_dir` names the cache folder instead of a fresh one (the tests pass their
+    session's, whose programs are compiled already: the same steps, without the compile)."""
     import tempfile
 
     from workers.actors import ExplorerActor, LevelServiceActor, ParamsRef
@@ -342,7 +344,7 @@ def bench_restart(ray: Any, config: TrainConfig, compile_cache: bool,
 
     with tempfile.TemporaryDirectory(prefix="tabx-restart-cache-") as cache:
         env = actor_env(False)
-        env["TABX_COMPILE_CACHE_DIR"] = cache if compile_cache else "off"
+        env["TABX_COMPILE_CACHE_DIR"] = (cache_dir or cache) if compile_cache else "off"
         setting = dataclasses.replace(config, run=dataclasses.replace(
             config.run, compile_cache=compile_cache))
 

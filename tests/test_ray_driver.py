@@ -45,6 +45,19 @@ def local_ray():
     ray.shutdown()
 
 
+# The deterministic ACCEL tests compare their Ray runs with this one local run (7 steps,
+# checkpoints and level snapshots after steps 4 and 7): one reference run for the module.
+ACCEL_STEPS = 7
+ACCEL_CONFIG = {"run.checkpoint_every": 4}
+
+
+@pytest.fixture(scope="module")
+def local_accel(tmp_path_factory):
+    """The local driver's uninterrupted ACCEL run (read only: tests compare with it)."""
+    return train(ued_config("accel", **ACCEL_CONFIG), run_dir=tmp_path_factory.mktemp(
+        "local-accel") / "local", stream=io.StringIO(), max_updates=ACCEL_STEPS)
+
+
 def ray_config(method: str, **overrides):
     return ued_config(method, **{"ray.enabled": "true", **overrides})
 
@@ -275,17 +288,20 @@ def test_an_explorer_killed_mid_batch_restarts_and_its_batches_are_reissued(tmp_
         os.kill(killed[0], 0)  # the process really died
 
 
-def test_chaos_kills_leave_the_deterministic_run_equal_to_the_local_one(tmp_path):
+def test_chaos_kills_leave_the_deterministic_run_equal_to_the_local_one(tmp_path,
+                                                                       local_accel):
     # Every 2 steps chaos kills the next of service, explorer-0, explorer-1 (Ray's kill, as a
     # user's cluster would see it): the run still equals the local driver's, byte for byte.
+    # With snapshots every 4 steps the service comes back from the start and its log (after
+    # step 2), from the snapshot of the step just done (4), and from a snapshot and its log (6).
     method = "accel"
-    local = train(ued_config(method), run_dir=tmp_path / "local", stream=io.StringIO(),
-                  max_updates=STEPS + 1)
+    local = local_accel
     out = io.StringIO()
     remote = train(ray_config(method, **{"ray.deterministic": "true", "ray.explorers": 2,
                                          "ray.chaos_kill_every": 2,
-                                         "ray.chaos_roles": "explorer,service"}),
-                   run_dir=tmp_path / "chaos", stream=out, max_updates=STEPS + 1)
+                                         "ray.chaos_roles": "explorer,service",
+                                         **ACCEL_CONFIG}),
+                   run_dir=tmp_path / "chaos", stream=out, max_updates=ACCEL_STEPS)
     record = json.loads((remote / RAY_RECORD).read_text())
     assert record["mode"] == "deterministic" and set(record["placement"]) == {
         "service", "learner", "explorer-0", "explorer-1"}
@@ -300,7 +316,7 @@ def test_chaos_kills_leave_the_deterministic_run_equal_to_the_local_one(tmp_path
     snapshots = sorted(p.name for p in (local / LEVELS_DIR).iterdir())
     assert any(name.endswith(".msgpack") for name in snapshots)  # the buffer's
     # The same snapshots, and the service's commit log since the last one (empty).
-    last = STEPS + 1
+    last = ACCEL_STEPS
     assert sorted(p.name for p in (remote / LEVELS_DIR).iterdir()) == sorted(
         [*snapshots, LOG_NAME.format(last)])
     assert read(remote / LEVELS_DIR / LOG_NAME.format(last)).records == []
@@ -309,57 +325,28 @@ def test_chaos_kills_leave_the_deterministic_run_equal_to_the_local_one(tmp_path
                                                             ).read_bytes(), name
 
 
-def test_a_running_ray_run_can_be_inspected_from_another_process(tmp_path):
-    from tabx_ued.cli import main
-
-    run_dir = tmp_path / "live"
-    seen = {}
-
-    def look(done, train_state, values):
-        if done == 3:  # the run is going: ask from outside, as a user would
-            for what in ("buffer", "status"):
-                seen[what] = subprocess.run(
-                    [sys.executable, "-m", "tabx_ued", "runs", what, str(run_dir)],
-                    capture_output=True, text=True, timeout=120)
-
-    config = ray_config("robust_plr", **{"ray.explorers": 1, "run.log_every": 1})
-    train(config, run_dir=run_dir, stream=io.StringIO(), max_updates=5, callback=look)
-    buffer = seen["buffer"]
-    assert buffer.returncode == 0, buffer.stderr[-2000:]
-    assert f"{run_dir} (live): " in buffer.stdout and " / 8 levels" in buffer.stdout
-    assert "policy versions:" in buffer.stdout  # the summary of tabx buffer inspect
-    status = seen["status"]
-    assert status.returncode == 0, status.stderr[-2000:]
-    assert f"{run_dir}: running; asynchronous schedule; step 3 of 10" in status.stdout
-    assert "explorer-0" in status.stdout and "learner" in status.stdout
-    # Over: the record says so, and the live buffer points to the snapshots.
-    record = json.loads((run_dir / RAY_RECORD).read_text())
-    assert record["status"] == "finished" and record["steps"] == [0, 5]
-    assert main(["runs", "buffer", str(run_dir)]) == 2
-    assert main(["runs", "status", str(tmp_path / "nowhere")]) == 2
-
-
-def test_a_ray_run_resumed_with_other_explorers_equals_an_uninterrupted_local_run(tmp_path):
-    # 3 steps on 2 Explorers, then 3 more on 1 (as `tabx train --resume RUN --ray
-    # ray.explorers=1` does), deterministic: the local driver's 6 steps, byte for byte.
+def test_a_ray_run_resumed_with_other_explorers_equals_an_uninterrupted_local_run(
+        tmp_path, local_accel):
+    # 3 steps on 2 Explorers, then 4 more on 1 (as `tabx train --resume RUN --ray
+    # ray.explorers=1` does), deterministic: the local driver's 7 steps, byte for byte.
     import dataclasses
 
     method = "accel"
-    local = train(ued_config(method), run_dir=tmp_path / "local", stream=io.StringIO(),
-                  max_updates=STEPS)
-    config = ray_config(method, **{"ray.deterministic": "true", "ray.explorers": 2})
+    local = local_accel
+    config = ray_config(method, **{"ray.deterministic": "true", "ray.explorers": 2,
+                                   **ACCEL_CONFIG})
     remote = train(config, run_dir=tmp_path / "ray", stream=io.StringIO(), max_updates=3)
     fewer = dataclasses.replace(config.ray, explorers=1)
-    train(run_dir=remote, resume=True, ray=fewer, stream=io.StringIO(), max_updates=3)
+    train(run_dir=remote, resume=True, ray=fewer, stream=io.StringIO(), max_updates=4)
     record = json.loads((remote / RAY_RECORD).read_text())
-    assert record["steps"] == [3, STEPS] and set(record["placement"]) == {
+    assert record["steps"] == [3, ACCEL_STEPS] and set(record["placement"]) == {
         "service", "learner", "explorer-0"}
     state_a, key_a, step_a = final_state(local, ued_config(method))
     state_b, key_b, step_b = final_state(remote, ued_config(method))
-    assert step_a == step_b == STEPS
+    assert step_a == step_b == ACCEL_STEPS
     assert trees_equal(state_a.params, state_b.params) and np.array_equal(key_a, key_b)
-    assert (local / LEVELS_DIR / f"buffer-{STEPS}.msgpack").read_bytes() == (
-        remote / LEVELS_DIR / f"buffer-{STEPS}.msgpack").read_bytes()
+    assert (local / LEVELS_DIR / f"buffer-{ACCEL_STEPS}.msgpack").read_bytes() == (
+        remote / LEVELS_DIR / f"buffer-{ACCEL_STEPS}.msgpack").read_bytes()
 
 
 def test_an_evaluator_killed_mid_evaluation_runs_it_again_on_its_restart(tmp_path,
@@ -401,7 +388,9 @@ def test_ued_bench_times_an_explorer_restart():
     from tabx_bench.ued import bench_restart
 
     out = io.StringIO()
-    result = bench_restart(ray, ued_config("robust_plr"), True, out)
+    # The session's compilation cache (tests/conftest.py): the Explorer's programs load.
+    result = bench_restart(ray, ued_config("robust_plr"), True, out,
+                           cache_dir=os.environ["TABX_COMPILE_CACHE_DIR"])
     assert result.first_score_s > 0 and 0 < result.ready_s <= result.restarted_score_s
     assert result.service_commits == 50 and result.service_ready_s > 0  # none lost, or raises
     assert "restart, compilation cache on: Explorer back in" in out.getvalue()
@@ -420,16 +409,15 @@ def kill_service_at(run_dir, steps):
 
 
 def test_a_killed_service_restarts_with_every_commit_and_the_run_equals_the_local_one(
-        tmp_path):
+        tmp_path, local_accel):
     # Deterministic: killed after step 3 (it restores from the start of the session and its
     # log) and after step 5 (from the snapshot of step 4 and its log). Parameters, key and
     # every snapshot equal the local driver's uninterrupted run: no commit lost or repeated.
-    method, steps = "accel", 7
-    local = train(ued_config(method, **{"run.checkpoint_every": 4}), run_dir=tmp_path / "local",
-                  stream=io.StringIO(), max_updates=steps)
+    method, steps = "accel", ACCEL_STEPS
+    local = local_accel
     run_dir = tmp_path / "ray"
     config = ray_config(method, **{"ray.deterministic": "true", "ray.explorers": 1,
-                                   "run.checkpoint_every": 4})
+                                   **ACCEL_CONFIG})
     out = io.StringIO()
     train(config, run_dir=run_dir, stream=out, max_updates=steps,
           callback=kill_service_at(run_dir, {3, 5}))
@@ -464,19 +452,43 @@ def test_a_killed_service_loses_no_committed_batch_in_the_asynchronous_mode(tmp_
     assert buffer.stats["insert_attempts"] == 4 * new  # none lost, none counted twice
 
 
-def test_a_long_run_holds_no_more_object_refs_at_its_end_than_early_on(tmp_path):
+def test_a_long_run_holds_no_more_object_refs_at_its_end_and_can_be_inspected_while_it_runs(
+        tmp_path):
     # 40 asynchronous steps: refs of levels, scores and parameters are released once used,
-    # so the driver's reference table (and the objects it pins) stays flat.
-    seen = {}
+    # so the driver's reference table (and the objects it pins) stays flat. After step 3 a
+    # user asks from another process, as `tabx runs buffer|status RUN` does, what it holds.
+    from tabx_ued.cli import main
+
+    run_dir = tmp_path / "long"
+    seen, inspected = {}, {}
 
     def count(done, train_state, values):
         seen[done] = values["ray/driver_refs"]
+        if done == 3:  # the run is going: ask from outside, as a user would
+            for what in ("buffer", "status"):
+                inspected[what] = subprocess.run(
+                    [sys.executable, "-m", "tabx_ued", "runs", what, str(run_dir)],
+                    capture_output=True, text=True, timeout=120)
 
     config = ray_config("robust_plr", **{"ray.explorers": 1, "ued.replay_prob": 0.5,
                                          "ued.buffer_size": 32, "ued.min_fill_ratio": 0.25,
-                                         "learner.total_timesteps": 40 * 64})
-    train(config, run_dir=tmp_path / "long", stream=io.StringIO(), max_updates=40,
-          callback=count)
+                                         "learner.total_timesteps": 40 * 64,
+                                         "run.log_every": 1})
+    train(config, run_dir=run_dir, stream=io.StringIO(), max_updates=40, callback=count)
     early = max(seen[s] for s in range(5, 15))
     late = max(seen[s] for s in range(30, 41))
     assert 0 < late <= early + 2, seen
+
+    buffer = inspected["buffer"]
+    assert buffer.returncode == 0, buffer.stderr[-2000:]
+    assert f"{run_dir} (live): " in buffer.stdout and " / 32 levels" in buffer.stdout
+    assert "policy versions:" in buffer.stdout  # the summary of tabx buffer inspect
+    status = inspected["status"]
+    assert status.returncode == 0, status.stderr[-2000:]
+    assert f"{run_dir}: running; asynchronous schedule; step 3 of 40" in status.stdout
+    assert "explorer-0" in status.stdout and "learner" in status.stdout
+    # Over: the record says so, and the live buffer points to the snapshots.
+    record = json.loads((run_dir / RAY_RECORD).read_text())
+    assert record["status"] == "finished" and record["steps"] == [0, 40]
+    assert main(["runs", "buffer", str(run_dir)]) == 2
+    assert main(["runs", "status", str(tmp_path / "nowhere")]) == 2
