@@ -474,6 +474,8 @@ def bench_ued(args: argparse.Namespace) -> int:
         config = load_config(args.config, overrides)
         if not config.ued.enabled:
             raise ConfigError(f"{args.config}: ued.method: tabx bench ued needs a UED config")
+        if args.simulate:
+            return bench_simulated(config, args)
         restarts: list[RestartResult] | None = [] if args.restart else None
         results = run_ued_bench(config, args.explorers, args.warmup, args.steps,
                                 local=not args.no_local, restarts=restarts)
@@ -497,6 +499,32 @@ def bench_ued(args: argparse.Namespace) -> int:
     return 0
 
 
+def bench_simulated(config: TrainConfig, args: argparse.Namespace) -> int:
+    """`--simulate`: the control plane with stand-in Explorers (tabx_bench.ued_sim)."""
+    from tabx_bench.ued_sim import format_sim_table, plot_sim, run_simulation
+
+    results = run_simulation(config, args.simulate, args.batch_s, args.learner_s, args.seconds,
+                             args.per_process)
+    print(format_sim_table(results))
+    if args.json:
+        atomic_write_text(Path(args.json), "".join(json.dumps(r.to_json()) + "\n"
+                                                   for r in results))
+    if args.plot:
+        plot_sim(results, args.plot)
+        print(f"plot: {args.plot}")
+    return 0
+
+
+def positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return value
+
+
 def add_ued_bench(which: argparse._SubParsersAction) -> None:
     """Add `ued` to the `tabx bench` sub-commands."""
     p = which.add_parser("ued", help="UED throughput: local driver and Ray by Explorer count")
@@ -514,11 +542,24 @@ def add_ued_bench(which: argparse._SubParsersAction) -> None:
                    help="also time the restart of an Explorer and of the LevelService (with "
                         "50 logged commits to replay) after a kill, without and with the "
                         "compilation cache")
+    p.add_argument("--simulate", type=int_list(1), metavar="N,...",
+                   help="instead: the control plane with these counts of stand-in Explorers "
+                        "(sleeping --batch-s per batch) on the continuous schedule, with the "
+                        "real driver, level service and commit log")
+    p.add_argument("--batch-s", type=positive_float, default=0.5,
+                   help="--simulate: seconds a stand-in Explorer takes per batch (default 0.5)")
+    p.add_argument("--learner-s", type=positive_float, default=0.5,
+                   help="--simulate: seconds the stand-in learner takes per step (default 0.5)")
+    p.add_argument("--seconds", type=positive_float, default=20.0,
+                   help="--simulate: timed seconds per Explorer count (default 20)")
+    p.add_argument("--per-process", type=int_at_least(1), default=8,
+                   help="--simulate: stand-in Explorers per actor process (default 8)")
     p.add_argument("--address", help="join a running Ray cluster (auto, or HOST:PORT)")
     p.add_argument("--json", help="also write results as JSON lines to this file")
     p.add_argument("--plot", help="also draw trained/explored env steps/s to this PNG")
     p.set_defaults(func=bench_ued)
 
 
-__all__ = ["RestartResult", "UEDBenchResult", "add_ued_bench", "bench_restart", "format_table",
+__all__ = ["RestartResult", "UEDBenchResult", "add_ued_bench", "bench_restart", "bench_simulated",
+           "format_table",
            "ray_overhead", "run_ued_bench"]

@@ -480,3 +480,47 @@ def test_a_long_run_holds_no_more_object_refs_at_its_end_than_early_on(tmp_path)
     early = max(seen[s] for s in range(5, 15))
     late = max(seen[s] for s in range(30, 41))
     assert 0 < late <= early + 2, seen
+
+
+# With `-m slow`: tests/test_ray_schedule.py's continuous tests (stand-in Ray) check that every
+# issued batch is committed once and stale ones are scored again, without kills.
+@pytest.mark.slow
+def test_continuous_scoring_commits_every_batch_once_when_explorers_and_the_service_die(
+        tmp_path, monkeypatch):
+    # ACCEL on the continuous schedule: the Explorer is SIGKILLed right after its third batch
+    # went to it, the service after steps 3 and 6. Batches in flight are re-issued, levels
+    # lost with the service asked for again, numbered calls sent again in order: every
+    # issued batch is committed exactly once, and the buffer saw each batch's levels once.
+    import signal
+
+    from workers.ray_driver import AsyncRun
+
+    killed: list[int] = []
+    submitted = {"n": 0}
+    original = AsyncRun._submit
+
+    def submit_then_kill(self, batch):
+        actor = self.scorers[batch.explorer]
+        if submitted["n"] == 0:
+            killed.append(ray.get(actor.pid.remote()))
+        original(self, batch)
+        submitted["n"] += 1
+        if submitted["n"] == 3:
+            os.kill(killed[0], signal.SIGKILL)
+
+    monkeypatch.setattr(AsyncRun, "_submit", submit_then_kill)
+    run_dir = tmp_path / "continuous"
+    config = ray_config("accel", **{"ray.explorers": 1, "ray.max_inflight": 2,
+                                    "ray.schedule": "continuous", "ued.buffer_size": 32,
+                                    "ued.min_fill_ratio": 0.25})
+    out = io.StringIO()
+    train(config, run_dir=run_dir, stream=out, max_updates=8,
+          callback=kill_service_at(run_dir, {3, 6}))
+    record = json.loads((run_dir / RAY_RECORD).read_text())
+    assert record["mode"] == "continuous"
+    assert record["restarts"] == {"explorer-0": 1, "service": 2}, out.getvalue()[-3000:]
+    assert record["ledger"] == {"committed": 8} and record["branches"]["replay"] == 8
+    committed = record["committed_batches"]
+    assert record["explorer_batches"] == {"committed": committed} and committed >= 2
+    buffer = LevelBuffer.load(run_dir / LEVELS_DIR / "buffer-8.msgpack")
+    assert buffer.stats["insert_attempts"] == 4 * committed  # none lost, none counted twice

@@ -801,17 +801,31 @@ class RayRunner(Runner):
         self.start = start
         self.learner = RemoteLearner(ray, workers.learner, self.version, self.actors)
         placement = workers.placement(ray)
-        self.record.update(mode="deterministic" if self.deterministic else "asynchronous",
-                           learner_gpus=workers.gpus, placement=placement, steps=[start, start],
-                           total_steps=config.learner.num_updates)
-        self.asynchronous = None if self.deterministic else AsyncRun(
-            ray, config, self.run, self.learner, workers, self.service)
+        self.record.update(mode=self.mode, learner_gpus=workers.gpus, placement=placement,
+                           steps=[start, start], total_steps=config.learner.num_updates)
+        if self.deterministic:
+            self.asynchronous = None
+        elif config.ray.schedule == "continuous":
+            from workers.continuous import ContinuousRun
+
+            self.asynchronous = ContinuousRun(ray, config, self.run, self.learner, workers,
+                                              self.service, start)
+        else:
+            self.asynchronous = AsyncRun(ray, config, self.run, self.learner, workers,
+                                         self.service)
         self.chaos = Chaos(ray, config.ray, list(zip(workers.names(), workers.all(),
                                                      strict=True)), self.stream)
 
+    @property
+    def mode(self) -> str:
+        """deterministic, asynchronous (the sequential schedule) or continuous."""
+        if self.deterministic:
+            return "deterministic"
+        return "continuous" if self.config.ray.schedule == "continuous" else "asynchronous"
+
     def headline(self, run_dir: Path, start: int) -> str:
         config, workers = self.config, self.workers
-        mode = "deterministic" if self.deterministic else "asynchronous"
+        mode = self.mode
         return (f"{config.ued.method} + {config.algorithm} on Ray ({mode}, "
                 f"{len(workers.explorers)} explorers, learner "
                 f"{'GPU' if workers.gpus else 'CPU'}) in {run_dir}; "
