@@ -130,6 +130,11 @@ def simulate(ray: Any, config: TrainConfig, explorers: int, batch_s: float, lear
     from workers.ray_restarts import RemoteService
     from workers.ued_step import UEDRun
 
+    # The buffer's fill is not what is measured: replay from the first committed batch.
+    config = dataclasses.replace(
+        config, ray=dataclasses.replace(config.ray, enabled=True, schedule="continuous",
+                                        deterministic=False),
+        ued=dataclasses.replace(config.ued, min_fill_ratio=0.0)).validate()
     env = {"env_vars": actor_env(False)}
     with tempfile.TemporaryDirectory(prefix="tabx-sim-levels-") as folder:
         service_actor = ray.remote(LevelServiceActor).options(
@@ -193,11 +198,6 @@ def run_simulation(config: TrainConfig, explorers: list[int], batch_s: float, le
     from workers.ray_driver import connect
 
     stream = sys.stderr if stream is None else stream
-    # The buffer's fill is not what is measured: replay from the first committed batch.
-    config = dataclasses.replace(
-        config, ray=dataclasses.replace(config.ray, enabled=True, schedule="continuous",
-                                        deterministic=False),
-        ued=dataclasses.replace(config.ued, min_fill_ratio=0.0)).validate()
     ray, connected_here = connect(config.ray)
     results = []
     try:

@@ -524,3 +524,15 @@ def test_continuous_scoring_commits_every_batch_once_when_explorers_and_the_serv
     assert record["explorer_batches"] == {"committed": committed} and committed >= 2
     buffer = LevelBuffer.load(run_dir / LEVELS_DIR / "buffer-8.msgpack")
     assert buffer.stats["insert_attempts"] == 4 * committed  # none lost, none counted twice
+
+
+def test_the_simulated_control_plane_keeps_8_explorers_near_their_ideal_rate():
+    # `tabx bench ued --simulate` at a small size: 8 stand-in Explorers of 0.2 s batches (ideal
+    # 40 batches/s) on the real driver, level service and commit log; a generous bound (the
+    # machine is shared), the measured numbers are in docs/benchmarks.md.
+    from tabx_bench.ued_sim import simulate
+
+    config = ray_config("robust_plr")
+    result = simulate(ray, config, 8, batch_s=0.2, learner_s=0.2, seconds=3.0)
+    assert result.committed_per_s >= 0.5 * result.ideal_per_s, result
+    assert result.learner_steps >= 3 and result.service_fsyncs < result.service_calls

@@ -37,6 +37,7 @@ import logging
 import os
 import socket
 import sys
+import threading
 import time
 import uuid
 import warnings
@@ -688,15 +689,32 @@ def need_ued(config: TrainConfig) -> None:
 class RunRecord:
     """`RUN_DIR/ray.json`: written when the actors are up (`status: running`, the cluster's
     address and the actors' names, so that `tabx runs status` and `tabx runs buffer` can find
-    the run), refreshed at every logged step, and final when the run ends or stops."""
+    the run), refreshed at every logged step, and final when the run ends or stops. A logged
+    step's refresh (`background=True`) is written by a thread, off the step path; every other
+    update waits until the file holds it."""
 
     def __init__(self, path: Path):
         self.path = path
         self.data: dict[str, Any] = {}
+        self._lock = threading.Lock()
+        self._writer: threading.Thread | None = None
 
-    def update(self, **fields: Any) -> None:
+    def update(self, background: bool = False, **fields: Any) -> None:
         self.data.update(fields, updated=time.strftime("%Y-%m-%dT%H:%M:%S%z"))
-        atomic_write_json(self.path, self.data)
+        snapshot = dict(self.data)  # the values are replaced, never changed in place
+        if self._writer is not None and self._writer.is_alive():
+            if background:
+                return  # the next refresh writes it; a logged step never waits for a write
+            self._writer.join()
+        if background:
+            self._writer = threading.Thread(target=self._write, args=(snapshot,), daemon=True)
+            self._writer.start()
+        else:
+            self._write(snapshot)
+
+    def _write(self, snapshot: dict[str, Any]) -> None:
+        with self._lock:
+            atomic_write_json(self.path, snapshot)
 
 
 class RayDriver(Driver):
@@ -868,7 +886,8 @@ class RayRunner(Runner):
                                                      len(asynchronous.pending)))
             extra = asynchronous.stats.text(len(self.workers.explorers), buffer_size)
         report.show(values, None, extra=extra, callback=False)
-        self.record.update(steps=[self.start, report.done], env_steps_per_s=report.rate,
+        self.record.update(background=True, steps=[self.start, report.done],
+                           env_steps_per_s=report.rate,
                            buffer_size=buffer_size, **self.schedule_fields())
         callback = report.output.callback
         if callback is not None:
