@@ -533,6 +533,6 @@ def test_the_simulated_control_plane_keeps_8_explorers_near_their_ideal_rate():
     from tabx_bench.ued_sim import simulate
 
     config = ray_config("robust_plr")
-    result = simulate(ray, config, 8, batch_s=0.2, learner_s=0.2, seconds=3.0)
+    result = simulate(ray, config, 8, batch_s=0.2, learner_s=0.2, seconds=2.0)
     assert result.committed_per_s >= 0.5 * result.ideal_per_s, result
     assert result.learner_steps >= 3 and result.service_fsyncs < result.service_calls

@@ -49,6 +49,7 @@ from workers.ray_restarts import SERVICE, RemoteService
 from workers.ued_step import LevelRequest, UEDRun
 
 BACKGROUND_KEY = 0xC0471  # folded into the seed: the key chain of the Explorers' batches
+KEY_BLOCK = 256  # Explorer batches whose keys one JAX call makes
 
 
 class ContinuousRun(AsyncRun):
@@ -71,6 +72,7 @@ class ContinuousRun(AsyncRun):
         self.filled = False  # the buffer reached its minimum fill ratio (it never shrinks)
         self.group_commits = 0
         self.paused = False  # no new Explorer batches (while draining)
+        self._key_block: tuple[int, list[jax.Array]] = (-1, [])
 
     # Explorers: kept busy -------------------------------------------------------------------
 
@@ -85,15 +87,24 @@ class ContinuousRun(AsyncRun):
             while self.inflight[i] < limit:
                 self.issue(i)
 
+    def batch_keys(self, batch: int) -> tuple[jax.Array, jax.Array]:
+        """(levels key, rollout key) of Explorer batch number `batch`: split by blocks of
+        KEY_BLOCK batches (one JAX call per block, not per batch: the driver's CPU)."""
+        block, index = divmod(batch, KEY_BLOCK)
+        if self._key_block[0] != block:
+            keys = jax.random.split(jax.random.fold_in(self.key, block), 2 * KEY_BLOCK)
+            self._key_block = (block, list(keys))
+        keys = self._key_block[1]
+        return keys[2 * index], keys[2 * index + 1]
+
     def issue(self, i: int) -> None:
         n = self.config.learner.num_envs
+        k_levels, key = self.batch_keys(self.issued)
         if self.requests:
             request, levels = self.requests.popleft()
         else:
-            k_levels = jax.random.fold_in(self.key, self.issued)
             request = LevelRequest("fresh", (k_levels, n), Source.RANDOM)
             levels = self.actors.send(Call.of(SERVICE, "fresh", k_levels, n))
-        key = jax.random.fold_in(jax.random.fold_in(self.key, self.issued), 1)
         batch = Batch(self.issued, request, key, self.learner.version, i, levels)
         score = self.config.ued.score
         batch.score = Call(self.names[i], "score_levels",
@@ -116,12 +127,16 @@ class ContinuousRun(AsyncRun):
                 self.stats.wait_for_levels_s += time.perf_counter() - t0
             ready, _ = self.ray.wait(refs, num_returns=len(refs), timeout=0)
             ready = [*first, *(ref for ref in ready if ref not in first)]
+            try:  # one call for all of them; where one failed, each on its own
+                results: list[Any] = self.ray.get(ready)
+            except Exception:
+                results = [None] * len(ready)
             group = []
-            for ref in ready:
+            for ref, result in zip(ready, results, strict=True):
                 batch = self.pending.pop(ref)
                 self.inflight[batch.explorer] -= 1
                 try:
-                    _, scores, best = self.ray.get(ref)
+                    _, scores, best = self.ray.get(ref) if result is None else result
                 except Exception as err:
                     self.reissue(batch, err)
                     continue
