@@ -58,7 +58,7 @@ class ContinuousRun(AsyncRun):
 
     def __init__(self, ray: Any, config: TrainConfig, run: UEDRun, learner: RemoteLearner,
                  workers: Workers, service: RemoteService, start: int = 0):
-        super().__init__(ray, config, run, learner, workers, service)
+        super().__init__(ray, config, run, learner, workers, service, start)
         curriculum = run.curriculum
         # Robust PLR and ACCEL score new levels without training on them: those scores run
         # without pause. Curricula that train on every batch keep the sequential steps.

@@ -29,6 +29,9 @@ Two modes (`ray.deterministic`):
   than the learner's is re-scored with the current policy instead (counted, `ray/rescored`).
 - **deterministic**: every batch in step order, each committed before the next is decided,
   exactly the local driver's schedule: parameters and buffer equal the local driver's.
+
+`ray.schedule: continuous` replaces the asynchronous mode's steps with continuous scoring
+(`workers.continuous`, handed to `RayDriver` by `workers.train.driver_for`).
 """
 
 from __future__ import annotations
@@ -468,10 +471,11 @@ class RayStats:
 class AsyncRun:
     """The asynchronous schedule over the actors of one run (see the module doc). Its calls go
     through the run's ActorManager (`service.actors`): a batch or an evaluation lost with its
-    actor is sent again on the restart."""
+    actor is sent again on the restart. `start`: the session's first step (a schedule of its
+    own key chain uses it; this one takes its keys from the steps)."""
 
     def __init__(self, ray: Any, config: TrainConfig, run: UEDRun, learner: RemoteLearner,
-                 workers: Workers, service: RemoteService):
+                 workers: Workers, service: RemoteService, start: int = 0):
         self.ray, self.config, self.run, self.learner, self.workers = (ray, config, run,
                                                                        learner, workers)
         self.scorers = workers.scorers()
@@ -718,9 +722,14 @@ class RunRecord:
 
 
 class RayDriver(Driver):
-    """Runs a UED run's workers as Ray actors (see the module doc)."""
+    """Runs a UED run's workers as Ray actors (see the module doc). `schedules`: the
+    asynchronous schedules other than the sequential `AsyncRun`, by `ray.schedule` name
+    (`workers.train.driver_for` adds `workers.continuous`'s)."""
 
     name = "ray"
+
+    def __init__(self, schedules: dict[str, type[AsyncRun]] | None = None):
+        self.schedules = dict(schedules or {})
 
     def check(self, config: TrainConfig) -> None:
         need_ued(config)
@@ -743,7 +752,8 @@ class RayDriver(Driver):
                           address=ray.get_runtime_context().gcs_address,
                           namespace=RAY_NAMESPACE,
                           actors={name: f"{run_name}/{name}" for name in workers.names()})
-            run_dir = train_loop(RayRunner(ray, workers, config, record, stream), run_dir,
+            runner = RayRunner(ray, workers, config, record, stream, self.schedules)
+            run_dir = train_loop(runner, run_dir,
                                  resume=resume, max_updates=max_updates, progress=progress,
                                  stream=stream, callback=callback)
             record.update(status="finished")
@@ -776,8 +786,9 @@ class RayRunner(Runner):
     explores = True
 
     def __init__(self, ray: Any, workers: Workers, config: TrainConfig, record: RunRecord,
-                 stream: TextIO):
+                 stream: TextIO, schedules: dict[str, type[AsyncRun]] | None = None):
         super().__init__(config)
+        self.schedules = {"sequential": AsyncRun, **(schedules or {})}
         self.ray, self.workers, self.record, self.stream = ray, workers, record, stream
         self.deaths = ActorDeaths(stream)  # logged even when quiet: a death is news
         # Every call to the run's actors goes through one manager (restarts, re-issue).
@@ -823,14 +834,13 @@ class RayRunner(Runner):
                            steps=[start, start], total_steps=config.learner.num_updates)
         if self.deterministic:
             self.asynchronous = None
-        elif config.ray.schedule == "continuous":
-            from workers.continuous import ContinuousRun
-
-            self.asynchronous = ContinuousRun(ray, config, self.run, self.learner, workers,
-                                              self.service, start)
         else:
-            self.asynchronous = AsyncRun(ray, config, self.run, self.learner, workers,
-                                         self.service)
+            schedule = self.schedules.get(config.ray.schedule)
+            if schedule is None:
+                raise ConfigError(f"ray.schedule: {config.ray.schedule!r} is not among this "
+                                  f"driver's schedules ({', '.join(self.schedules)})")
+            self.asynchronous = schedule(ray, config, self.run, self.learner, workers,
+                                         self.service, start=start)
         self.chaos = Chaos(ray, config.ray, list(zip(workers.names(), workers.all(),
                                                      strict=True)), self.stream)
 
