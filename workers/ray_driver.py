@@ -807,6 +807,7 @@ class RayRunner(Runner):
         self.learner: RemoteLearner | None = None
         self.asynchronous: AsyncRun | None = None
         self.chaos: Chaos | None = None
+        self._asked: tuple[Call, Call] | None = None  # the service's statistics, asked for
 
     @property
     def eval_every(self) -> int:
@@ -884,11 +885,24 @@ class RayRunner(Runner):
     def host_metrics(self) -> dict[str, Any]:
         return dict(jax.device_get(self.metrics))
 
+    def buffer_view(self, last: bool) -> tuple[dict[str, float], int | None]:
+        """The level service's statistics and buffer size, off the step path: asked for at a
+        logged step, read at the next one (so a logged step does not wait behind the
+        service's queue); the first and the last logged step wait for them."""
+        def ask() -> tuple[Call, Call]:
+            return (self.actors.send(Call.of(SERVICE, "stats")),
+                    self.actors.send(Call.of(SERVICE, "buffer_size")))
+
+        asked = ask() if self._asked is None or last else self._asked
+        view = self.actors.get(asked[0]), self.actors.get(asked[1])
+        self._asked = None if last else ask()
+        return view
+
     def log(self, values: dict[str, Any], report: Report) -> None:
         run, asynchronous = self.run, self.asynchronous
         values.update(report.timing)
-        values.update(run.logged_metrics(self.levels))
-        buffer_size = self.service.buffer_size()  # one call to the service per log
+        stats, buffer_size = self.buffer_view(report.last)
+        values.update(run.logged_metrics(self.levels, stats))
         extra = branch_text(run.branch_counts, buffer_size)
         values["ray/driver_refs"] = float(driver_refs(self.ray))
         if asynchronous is not None:
