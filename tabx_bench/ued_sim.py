@@ -11,8 +11,9 @@ every batch of fresh levels) and its commit log, fsynced in a temporary folder.
 
 Per Explorer count it reports committed Explorer batches/s against the ideal N / batch time,
 the driver's CPU seconds per committed batch (its process time over the window), the level
-service's numbered calls/s and fsyncs/s, the learner's steps/s, and the staleness histogram
-(policy versions between a score's policy and the learner's at commit).
+service's CPU (of one core; from /proc) and its numbered calls/s and fsyncs/s, the learner's
+steps/s, and the staleness histogram (policy versions between a score's policy and the
+learner's at commit).
 
 Stand-ins share processes (`--per-process` threads of one Ray actor each; a sleep releases the
 interpreter), so 64 of them fit on a small machine; each has its own name, queue bound
@@ -24,10 +25,12 @@ time, as with real Explorers (which one of a process's stand-ins it is does not 
 from __future__ import annotations
 
 import dataclasses
+import os
 import tempfile
 import time
 from collections import Counter
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, TextIO
 
 import jax
@@ -46,6 +49,9 @@ class SleepExplorer:
 
     def ready(self) -> bool:
         return True
+
+    def pid(self) -> int:
+        return os.getpid()
 
     def score_levels(self, params: Any, levels: Any, key: Any, score: str,
                      max_returns: Any = None, num_steps: int | None = None
@@ -95,6 +101,8 @@ class SimResult:
     driver_cpu_s: float
     service_calls: int  # numbered (state-changing) calls sent to the level service
     service_fsyncs: int  # commit-log fsyncs they cost (one per call, one per group commit)
+    service_cpu_s: float = float("nan")  # the level service's process (Linux: /proc)
+    explorers_cpu_s: float = float("nan")  # the stand-ins' processes
     staleness: dict[str, int] = field(default_factory=dict)
 
     @property
@@ -169,11 +177,16 @@ def simulate(ray: Any, config: TrainConfig, explorers: int, batch_s: float, lear
             committed0, steps0 = schedule.stats.committed, step
             calls0, groups0 = service.seq, schedule.group_commits
             staleness0 = Counter(schedule.stats.staleness)
+            service_pid = ray.get(service_actor.pid.remote())
+            host_pids = ray.get([h.pid.remote() for h in hosts])
+            service0, hosts0 = process_cpu_s([service_pid]), process_cpu_s(host_pids)
             cpu0, t0 = time.process_time(), time.perf_counter()
             while time.perf_counter() - t0 < seconds:
                 one_step()
             elapsed = time.perf_counter() - t0
             cpu = time.process_time() - cpu0
+            service_cpu = process_cpu_s([service_pid]) - service0
+            hosts_cpu = process_cpu_s(host_pids) - hosts0
             committed = schedule.stats.committed - committed0
             calls = service.seq - calls0
             groups = schedule.group_commits - groups0
@@ -185,8 +198,21 @@ def simulate(ray: Any, config: TrainConfig, explorers: int, batch_s: float, lear
             for actor in actors:
                 ray.kill(actor)
     return SimResult(explorers, batch_s, learner_s, elapsed, committed, step - steps0, cpu,
-                     calls, calls - group_calls + groups,
+                     calls, calls - group_calls + groups, service_cpu, hosts_cpu,
                      {str(k): v for k, v in sorted(staleness.items()) if v > 0})
+
+
+def process_cpu_s(pids: list[int]) -> float:
+    """CPU seconds (user + system) the processes `pids` of this machine have used; NaN where
+    /proc cannot tell (not Linux, another node)."""
+    total = 0.0
+    for pid in pids:
+        try:
+            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            return float("nan")
+        total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return total
 
 
 def run_simulation(config: TrainConfig, explorers: list[int], batch_s: float, learner_s: float,
@@ -216,13 +242,14 @@ def run_simulation(config: TrainConfig, explorers: list[int], batch_s: float, le
 
 def format_sim_table(results: list[SimResult]) -> str:
     lines = [f"{'explorers':>9} {'batches/s':>10} {'ideal/s':>8} {'of ideal':>8} "
-             f"{'driver CPU':>10} {'CPU ms/batch':>12} {'calls/s':>8} {'fsyncs/s':>8} "
-             f"{'learner/s':>9}  staleness"]
+             f"{'driver CPU':>10} {'CPU ms/batch':>12} {'service CPU':>11} {'calls/s':>8} "
+             f"{'fsyncs/s':>8} {'learner/s':>9}  staleness"]
     for r in results:
         lag = " ".join(f"{k}:{v}" for k, v in r.staleness.items()) or "-"
         lines.append(f"{r.explorers:>9} {r.committed_per_s:>10.1f} {r.ideal_per_s:>8.1f} "
                      f"{r.efficiency:>8.0%} {r.driver_cpu_s / r.seconds:>10.0%} "
-                     f"{r.cpu_ms_per_batch:>12.2f} {r.service_calls / r.seconds:>8.1f} "
+                     f"{r.cpu_ms_per_batch:>12.2f} {r.service_cpu_s / r.seconds:>11.0%} "
+                     f"{r.service_calls / r.seconds:>8.1f} "
                      f"{r.service_fsyncs / r.seconds:>8.1f} "
                      f"{r.learner_steps / r.seconds:>9.2f}  {lag}")
     return "\n".join(lines)
