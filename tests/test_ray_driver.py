@@ -142,6 +142,10 @@ def test_ray_settings_are_checked():
         ray_config("dr", **{"ray.chaos_kill_every_s": -1})
     with pytest.raises(ConfigError, match="ray.chaos_roles: must be a comma-separated list"):
         ray_config("dr", **{"ray.chaos_roles": "explorer,learner"})
+    with pytest.raises(ConfigError, match="ray.schedule: must be one of sequential, continuous"):
+        ray_config("dr", **{"ray.schedule": "eager"})
+    with pytest.raises(ConfigError, match="ray.schedule: continuous scoring runs beside"):
+        ray_config("dr", **{"ray.schedule": "continuous", "ray.deterministic": "true"})
 
 
 def test_a_run_that_cannot_be_placed_is_refused(tmp_path):
@@ -190,6 +194,10 @@ def test_ued_bench_cli_rejects_bad_arguments(capsys):
     with pytest.raises(SystemExit) as exit_:
         main(["bench", "ued", "--steps", "0"])
     assert exit_.value.code == 2 and "--steps" in capsys.readouterr().err
+    for bad in (["--simulate", "0,8"], ["--simulate", "8", "--batch-s", "0"]):
+        with pytest.raises(SystemExit) as exit_:
+            main(["bench", "ued", *bad])
+        assert exit_.value.code == 2 and bad[-2] in capsys.readouterr().err
     assert main(["bench", "ued", "configs/marl/mappo_grid.yaml"]) == 2
     assert "ued.method: tabx bench ued needs a UED config" in capsys.readouterr().err
 
