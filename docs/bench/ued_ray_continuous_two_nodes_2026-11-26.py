@@ -1,9 +1,11 @@
 """Continuous scoring on a two-node Ray cluster on 127.0.0.1 (ray.cluster_utils.Cluster)."""
-import json, sys
+import json
+
 import ray
 from ray.cluster_utils import Cluster
+
+from tabx_bench.ued import format_table, run_ued_bench
 from ued.config import load_config
-from tabx_bench.ued import run_ued_bench, format_table
 
 cluster = Cluster(initialize_head=True, head_node_args={
     "num_cpus": 2, "include_dashboard": False, "object_store_memory": 256 * 2**20})
