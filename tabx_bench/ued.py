@@ -53,6 +53,7 @@ DEFAULT_CONFIG = "ued/quickstart"  # a shipped config (ued.config_files)
 @dataclass
 class UEDBenchResult:
     driver: str  # "local" | "ray" (asynchronous) | "ray-deterministic" (the local schedule)
+    # | "ray-continuous" (continuous scoring)
     explorers: int  # Explorer actors (0 on the local driver and for the learner-scores case)
     method: str
     steps: int  # timed curriculum steps
@@ -81,6 +82,8 @@ class UEDBenchResult:
         explorers = f"{self.explorers} explorer{'' if self.explorers == 1 else 's'}"
         if self.driver == "ray-deterministic":
             return f"ray, {explorers}, deterministic"
+        if self.driver == "ray-continuous":
+            return f"ray, {explorers}, continuous"
         return f"ray, {explorers}"
 
     def to_json(self) -> dict[str, Any]:
@@ -101,8 +104,9 @@ class Warmup:
     """Untimed steps: at least `steps`, and until every branch of the curriculum has run once
     (so that each of its programs is compiled), at most `patience` times `steps`."""
 
-    def __init__(self, run: UEDRun, steps: int, patience: int = 10):
-        self.expected = set(run.curriculum.branches)
+    def __init__(self, run: UEDRun, steps: int, patience: int = 10,
+                 branches: Any = None):
+        self.expected = set(run.curriculum.branches if branches is None else branches)
         self.seen: set = set()
         self.steps, self.limit, self.count = steps, steps * patience, 0
 
@@ -155,15 +159,32 @@ class RayStepper:
 
         self.ray, self.config = ray, config
         self.workers = start_workers(ray, config, stream)
-        self.driver = "ray-deterministic" if config.ray.deterministic else "ray"
+        continuous = config.ray.schedule == "continuous"
+        self.driver = ("ray-deterministic" if config.ray.deterministic else
+                       "ray-continuous" if continuous else "ray")
         # One RemoteService for the run and the schedule: it numbers the state-changing calls.
         service = RemoteService(ray, self.workers.service, ActorDeaths(None))
         self.run = UEDRun(config, service, ExplorerPool(ray, self.workers.scorers()))
         self.key, k_init = jax.random.split(jax.random.key(config.seed))
         ray.get(self.workers.learner.init.remote(k_init))
         self.learner = RemoteLearner(ray, self.workers.learner)
-        self.schedule = AsyncRun(ray, config, self.run, self.learner, self.workers, service)
+        if continuous:
+            from workers.continuous import ContinuousRun
+
+            self.schedule = ContinuousRun(ray, config, self.run, self.learner, self.workers,
+                                          service)
+        else:
+            self.schedule = AsyncRun(ray, config, self.run, self.learner, self.workers, service)
         self.index = 0
+
+    @property
+    def branches(self) -> Any:
+        """The branches its steps take (continuous scoring: replay steps only)."""
+        if getattr(self.schedule, "scores_apart", False):
+            from ued.curricula import Branch
+
+            return {Branch.REPLAY}
+        return None
 
     def step(self) -> Any:
         self.key, k_step = jax.random.split(self.key)
@@ -185,7 +206,7 @@ class RayStepper:
 
 
 def _warm_up(stepper: LocalStepper | RayStepper, warmup: int) -> None:
-    warm = Warmup(stepper.run, warmup)
+    warm = Warmup(stepper.run, warmup, branches=getattr(stepper, "branches", None))
     while not warm.done:
         warm.saw(stepper.step())
     if isinstance(stepper, RayStepper):
@@ -199,7 +220,8 @@ def _result(stepper: LocalStepper | RayStepper, branches: Counter,
     steps = sum(branches.values())
     counts = {b.name.lower(): n for b, n in branches.items()}
     explorers = len(stepper.workers.explorers) if isinstance(stepper, RayStepper) else 0
-    if stepper.driver != "ray":  # every step waited for its work: the local accounting
+    if stepper.driver not in ("ray", "ray-continuous"):  # every step waited: the local
+        # accounting
         trained, explored = _steps_of(stepper.run, config, branches)
         busy = 1.0 if stepper.driver == "local" else float("nan")
         return UEDBenchResult(stepper.driver, explorers, config.ued.method, steps, seconds,
@@ -207,7 +229,7 @@ def _result(stepper: LocalStepper | RayStepper, branches: Counter,
                               wait_for_levels_s=0.0, branches=counts, step_seconds=step_seconds)
     stats = stepper.schedule.stats
     return UEDBenchResult(
-        "ray", explorers, config.ued.method, steps, seconds, stats.trained_steps,
+        stepper.driver, explorers, config.ued.method, steps, seconds, stats.trained_steps,
         stats.explored_steps + stepper.run.sfl_scoring_steps,
         learner_busy_fraction=stats.learner_busy_s / seconds,
         wait_for_levels_s=stats.wait_for_levels_s,
@@ -275,7 +297,8 @@ def run_ued_bench(config: TrainConfig, explorers: list[int], warmup: int, steps:
         return UEDBenchResult(driver, n, "", 1, 1, 0, 0, 0, 0).label
 
     labels = ([label("local", 0), label("ray-deterministic", 0)] if local else []) + [
-        label("ray", n) for n in explorers]
+        label("ray-continuous" if config.ray.schedule == "continuous" else "ray", n)
+        for n in explorers]
     stream.write(f"bench ued: {config.ued.method}, at least {warmup} warm-up + {steps} timed "
                  f"steps of {config.learner.steps_per_update:,} env steps; settings: "
                  f"{'; '.join(labels)}\n")
@@ -287,8 +310,11 @@ def run_ued_bench(config: TrainConfig, explorers: list[int], warmup: int, steps:
             config.ray, num_cpus=max([0, *explorers]) + 1))
 
     def setting(n: int, deterministic: bool) -> TrainConfig:
+        # The deterministic schedule is the sequential one (whatever ray.schedule says).
+        schedule = "sequential" if deterministic else config.ray.schedule
         return dataclasses.replace(config, ray=dataclasses.replace(
-            config.ray, enabled=True, explorers=n, deterministic=deterministic)).validate()
+            config.ray, enabled=True, explorers=n, deterministic=deterministic,
+            schedule=schedule)).validate()
 
     ray, connected_here = connect(config.ray)
     try:
@@ -476,6 +502,8 @@ def bench_ued(args: argparse.Namespace) -> int:
         config = load_config(args.config, overrides)
         if not config.ued.enabled:
             raise ConfigError(f"{args.config}: ued.method: tabx bench ued needs a UED config")
+        if args.simulate:
+            return bench_simulated(config, args)
         restarts: list[RestartResult] | None = [] if args.restart else None
         results = run_ued_bench(config, args.explorers, args.warmup, args.steps,
                                 local=not args.no_local, restarts=restarts)
@@ -499,6 +527,32 @@ def bench_ued(args: argparse.Namespace) -> int:
     return 0
 
 
+def bench_simulated(config: TrainConfig, args: argparse.Namespace) -> int:
+    """`--simulate`: the control plane with stand-in Explorers (tabx_bench.ued_sim)."""
+    from tabx_bench.ued_sim import format_sim_table, plot_sim, run_simulation
+
+    results = run_simulation(config, args.simulate, args.batch_s, args.learner_s, args.seconds,
+                             args.per_process)
+    print(format_sim_table(results))
+    if args.json:
+        atomic_write_text(Path(args.json), "".join(json.dumps(r.to_json()) + "\n"
+                                                   for r in results))
+    if args.plot:
+        plot_sim(results, args.plot)
+        print(f"plot: {args.plot}")
+    return 0
+
+
+def positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return value
+
+
 def add_ued_bench(which: argparse._SubParsersAction) -> None:
     """Add `ued` to the `tabx bench` sub-commands."""
     p = which.add_parser("ued", help="UED throughput: local driver and Ray by Explorer count")
@@ -516,11 +570,24 @@ def add_ued_bench(which: argparse._SubParsersAction) -> None:
                    help="also time the restart of an Explorer and of the LevelService (with "
                         "50 logged commits to replay) after a kill, without and with the "
                         "compilation cache")
+    p.add_argument("--simulate", type=int_list(1), metavar="N,...",
+                   help="instead: the control plane with these counts of stand-in Explorers "
+                        "(sleeping --batch-s per batch) on the continuous schedule, with the "
+                        "real driver, level service and commit log")
+    p.add_argument("--batch-s", type=positive_float, default=0.5,
+                   help="--simulate: seconds a stand-in Explorer takes per batch (default 0.5)")
+    p.add_argument("--learner-s", type=positive_float, default=0.5,
+                   help="--simulate: seconds the stand-in learner takes per step (default 0.5)")
+    p.add_argument("--seconds", type=positive_float, default=20.0,
+                   help="--simulate: timed seconds per Explorer count (default 20)")
+    p.add_argument("--per-process", type=int_at_least(1), default=8,
+                   help="--simulate: stand-in Explorers per actor process (default 8)")
     p.add_argument("--address", help="join a running Ray cluster (auto, or HOST:PORT)")
     p.add_argument("--json", help="also write results as JSON lines to this file")
     p.add_argument("--plot", help="also draw trained/explored env steps/s to this PNG")
     p.set_defaults(func=bench_ued)
 
 
-__all__ = ["RestartResult", "UEDBenchResult", "add_ued_bench", "bench_restart", "format_table",
+__all__ = ["RestartResult", "UEDBenchResult", "add_ued_bench", "bench_restart", "bench_simulated",
+           "format_table",
            "ray_overhead", "run_ued_bench"]

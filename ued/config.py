@@ -313,6 +313,9 @@ class UEDSection:
 CHAOS_ROLES = ("explorer", "service", "evaluator")  # the actors a run restarts
 
 
+RAY_SCHEDULES = ("sequential", "continuous")
+
+
 @dataclass(frozen=True)
 class RaySection:
     """Running a UED run's workers as Ray actors (docs/distributed.md). Off by default: the
@@ -324,6 +327,10 @@ class RaySection:
     max_inflight: int = 2  # batches each Explorer may run ahead of the driver
     max_policy_lag: int = 4  # a score this many policy versions older is re-scored
     deterministic: bool = False  # the local driver's schedule, step by step (equal results)
+    # "sequential": the paper's steps, one batch per step (scored by an Explorer or trained);
+    # "continuous": Explorers score new levels without pause, every step trains (Robust PLR,
+    # ACCEL; docs/distributed.md, "Continuous scoring")
+    schedule: str = "sequential"
     learner_gpus: float = -1.0  # GPUs of the learner actor; -1: one if the cluster has any
     num_cpus: int = 0  # CPUs of a Ray started here (0: Ray's own count)
     object_store_mb: int = 512  # object store of a Ray started here
@@ -339,6 +346,11 @@ class RaySection:
                f"must be >= 1, got {self.max_inflight}")
         _check(self.max_policy_lag >= 0, f"{prefix}.max_policy_lag",
                f"must be >= 0, got {self.max_policy_lag}")
+        _check(self.schedule in RAY_SCHEDULES, f"{prefix}.schedule",
+               f"must be one of {', '.join(RAY_SCHEDULES)}, got {self.schedule!r}")
+        _check(not (self.deterministic and self.schedule == "continuous"),
+               f"{prefix}.schedule", "continuous scoring runs beside the learner: it cannot "
+               "be deterministic (drop ray.deterministic or use schedule sequential)")
         _check(self.learner_gpus == -1.0 or self.learner_gpus >= 0, f"{prefix}.learner_gpus",
                f"must be -1 (auto) or >= 0, got {self.learner_gpus}")
         _check(self.num_cpus >= 0, f"{prefix}.num_cpus", f"must be >= 0, got {self.num_cpus}")

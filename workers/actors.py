@@ -120,6 +120,9 @@ class LevelServiceActor(DurableLevelService, ActorBase):
     def sample_learnable(self, key: jax.Array, n: int) -> EnvParams:
         return to_host(super().sample_learnable(key, n))
 
+    def mutate_replay(self, key: jax.Array, replay: Any) -> EnvParams:
+        return to_host(super().mutate_replay(key, replay))
+
     def buffer_bytes(self) -> bytes | None:
         """The level buffer as it is now, in the level-buffer file format (`tabx runs
         buffer`); None where the method keeps no buffer."""
@@ -174,6 +177,14 @@ class LearnerActor(ExplorerActor):
         metrics, scores, best = self._learner().train_scored(to_device(levels), key, score,
                                                              max_returns)
         return _host_metrics(metrics), scores, best
+
+    def train_replay(self, replay: Any, key: jax.Array, score: str
+                     ) -> tuple[dict[str, float], np.ndarray, np.ndarray, np.ndarray]:
+        """A replay step on a batch the level service drew (`level_buffer.Replay`, handed
+        over by ref: it never passes through the driver): (metrics, the replayed ids, their
+        new scores, best returns)."""
+        metrics, scores, best = self.train_scored(replay.levels, key, score, replay.max_returns)
+        return metrics, np.asarray(replay.ids), scores, best
 
     def params(self) -> Any:
         """The current parameters as numpy (the driver owns the returned object)."""

@@ -24,6 +24,7 @@ from ued import compile_cache
 from ued.config import ConfigError, RaySection, TrainConfig
 from ued.experiment import check_devices, scenario_levels
 from ued.run_folder import create_run_dir, open_checkpoints, read_run_config
+from workers.continuous import ContinuousRun
 from workers.driver import Callback, Driver
 from workers.local import LocalDriver
 from workers.ray_driver import RayDriver
@@ -37,8 +38,11 @@ def finished_at(run_dir: Path, config: TrainConfig) -> int | None:
 
 
 def driver_for(config: TrainConfig) -> Driver:
-    """The driver a config asks for: Ray's with `ray.enabled`, else the local one."""
-    return RayDriver() if config.ray.enabled else LocalDriver()
+    """The driver a config asks for: Ray's with `ray.enabled` (with its continuous schedule),
+    else the local one."""
+    if not config.ray.enabled:
+        return LocalDriver()
+    return RayDriver(schedules={"continuous": ContinuousRun})
 
 
 def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = None,
