@@ -12,13 +12,23 @@ The sweep file is `ued.sweep_spec`'s, the scheduling `workers.sweep`'s (Ray Tune
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
+
+from ued.errors import ConfigError
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
     from ued.sweep_spec import read_sweep_spec
 
     spec = read_sweep_spec(args.spec, args.overrides)  # every error before anything starts
+    if args.cpus is not None or args.gpus is not None:
+        resources = dataclasses.replace(
+            spec.resources, **{k: float(v) for k, v in (("cpus", args.cpus),
+                                                         ("gpus", args.gpus)) if v is not None})
+        if resources.cpus < 0 or resources.gpus < 0 or resources.cpus + resources.gpus == 0:
+            raise ConfigError("--cpus, --gpus: a trial needs some CPUs or a GPU fraction")
+        spec = dataclasses.replace(spec, resources=resources)
     from workers.sweep import run_sweep
 
     outcome = run_sweep(spec, None if args.dir is None else f"{args.dir}/{spec.name}",
@@ -61,6 +71,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         "Ray here")
     p.add_argument("--dir", metavar="DIR",
                    help="the folder the sweep folder goes in (default: the file's `dir`)")
+    p.add_argument("--cpus", type=float, metavar="N",
+                   help="CPUs each trial holds (in place of the file's resources.cpus)")
+    p.add_argument("--gpus", type=float, metavar="F",
+                   help="GPU fraction each trial holds (in place of resources.gpus; 0.5: two "
+                        "trials share a GPU)")
     p.add_argument("--num-cpus", type=int, metavar="N",
                    help="CPUs of the Ray started here (default: all)")
     p.add_argument("--table-every", type=float, default=30.0, metavar="S",

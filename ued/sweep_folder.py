@@ -22,7 +22,7 @@ import fcntl
 import json
 import time
 from collections.abc import Iterator
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -49,6 +49,7 @@ class TrialRecord:
     steps: int = 0  # env steps done
     total_steps: int = 0
     error: str = ""  # the error of a failed trial, one line
+    nodes: list[str] = field(default_factory=list)  # the Ray nodes its sessions ran on
     updated: float = 0.0  # time.time() of the last write
 
 

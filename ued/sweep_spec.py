@@ -11,9 +11,9 @@ A sweep file (YAML) names what an experiment is; `tabx sweep SPEC` runs it
     grid:                            # axes; their cross product is the trials
       ued.method: [dr, plr]          #   a config key: its values
       param:                         #   a named axis: label -> the overrides it stands for
-        unit: {levels.free: [unit_spec], ued.eval_suites: ["units-{scenario}"]}
-        zone: {levels.free: [zone], ued.eval_suites: ["zones-{scenario}"]}
-      scenario: [2F1M2Avs2S1K]       #   a named axis of plain labels: used in {templates}
+        unit: {levels.free: [unit_spec], ued.eval_suites: ["units-{teams}"]}
+        zone: {levels.free: [zone], ued.eval_suites: ["zones-{teams}"]}
+      teams: [2F1M2Avs2S1K]          #   a named axis of plain labels: used in {templates}
       seed: [0, 1]
     points:                          # listed trials (after the grid's): config keys, an
       - {name: lr-high, learner.lr: 1.0e-2}   # optional name, an optional base
@@ -22,9 +22,10 @@ A sweep file (YAML) names what an experiment is; `tabx sweep SPEC` runs it
 
 `grid` may also be a list of such mappings: the union of their cross products (the paper's
 main grid and its ablations). A string value may name the trial's label on another axis as
-`{axis}` (`"units-{scenario}"`); `base` may too. Axis keys are config keys as `key=value`
+`{axis}` (`"units-{teams}"`); `base` may too. Axis keys are config keys as `key=value`
 overrides write them (`ued.method`, `seed`, `lr`), or `base` (the trial's base config).
-A key with a dot must be a config key; a bare name that is no config key is a named axis.
+A key with a dot must be a config key; a bare name that is a config key's unambiguous field
+name (`seed`, `lr`, `scenario`) is that key, any other bare name is a named axis.
 
 Every trial's config is built and validated when the file is read: a mistake in the file, or a
 value the config refuses, is one `ConfigError` naming the file, the field and (for a config
@@ -127,14 +128,15 @@ class SweepSpec:
 
     def report_axes(self) -> ReportAxes:
         """The report's axes: as the file names them, else by name: seeds `seed`; lines
-        `ued.method`, `method` or `algorithm`; figures `env.scenario` or `scenario`."""
+        `ued.method`, `method` or `algorithm`; figures `env.scenario`, `teams` or
+        `challenge`."""
         def first(*names: str) -> str | None:
             return next((n for n in names if n in self.axes), None)
 
         return ReportAxes(
             seed_axis=self.report.seed_axis or first("seed"),
             line_axis=self.report.line_axis or first("ued.method", "method", "algorithm"),
-            figure_axis=self.report.figure_axis or first("env.scenario", "scenario",
+            figure_axis=self.report.figure_axis or first("env.scenario", "teams",
                                                          "challenge"))
 
 

@@ -39,6 +39,7 @@ def final_eval_rates(run_dir: Path) -> dict[str, float]:
 def run_trial(params: dict[str, Any], *, sweep_dir: str, configs: dict[str, str]) -> None:
     """The trainable: train the trial `params["trial"]`, whose config (YAML) is
     `configs[trial]`, in its run folder under `sweep_dir`."""
+    import ray
     from ray import tune
 
     from tabx.errors import UserError
@@ -54,6 +55,9 @@ def run_trial(params: dict[str, Any], *, sweep_dir: str, configs: dict[str, str]
         record = folder.record(name)
         record.sessions += 1
         record.state, record.error = "running", ""
+        node = ray.get_runtime_context().get_node_id()
+        if node not in record.nodes:
+            record.nodes.append(node)
         config = config_from_dict(read_yaml(configs[name].encode(), f"trial {name}"),
                                   source=f"trial {name}")
         steps_per_update = config.learner.steps_per_update
