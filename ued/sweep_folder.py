@@ -145,7 +145,7 @@ class SweepFolder:
         atomic_write_text(self.record_path(trial), json.dumps(asdict(record)) + "\n")
 
     @contextlib.contextmanager
-    def trial_lock(self, trial: str, timeout_s: float = 120.0) -> Iterator[None]:
+    def trial_lock(self, trial: str, timeout_s: float = 600.0) -> Iterator[None]:
         """Hold the trial's lock while it trains: a session of a killed sweep whose trial
         process is still winding down holds it until that process ends (the kernel drops a
         dead process's lock), so two sessions never write one run folder."""

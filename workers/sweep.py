@@ -103,7 +103,8 @@ def connect(spec: SweepSpec, address: str | None, num_cpus: int | None) -> tuple
     if address:
         from workers.ray_driver import check_reachable
 
-        check_reachable(address) if address != "auto" else None
+        if address != "auto":
+            check_reachable(address)
         kwargs["address"] = address
     else:
         kwargs.update(address="local", include_dashboard=False)
@@ -137,7 +138,8 @@ def _table_callback(table: SweepTable) -> Any:
             name = trial.config["trial"]
             values: dict[str, Any] = {}
             for key, attr in (("steps", "steps"), ("total_steps", "total_steps"),
-                              ("steps_per_s", "steps_per_s"), ("win_rate", "win_rate")):
+                              ("steps_per_s", "steps_per_s"), ("win_rate", "win_rate"),
+                              ("eta_s", "reported_eta_s")):
                 value = result.get(key)
                 if isinstance(value, int | float) and math.isfinite(value):
                     values[attr] = int(value) if attr.endswith("steps") else float(value)

@@ -27,11 +27,16 @@ class Row:
     total_steps: int = 0
     steps_per_s: float = math.nan
     win_rate: float = math.nan
+    reported_eta_s: float = math.nan  # the trial's own estimate (its mean rate), if it gave one
     error: str = ""
 
     @property
     def eta_s(self) -> float:
-        if self.state != "running" or not (self.steps_per_s > 0):
+        if self.state != "running":
+            return math.nan
+        if math.isfinite(self.reported_eta_s):
+            return self.reported_eta_s
+        if not self.steps_per_s > 0:
             return math.nan
         return max(self.total_steps - self.steps, 0) / self.steps_per_s
 

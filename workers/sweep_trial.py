@@ -66,6 +66,15 @@ def run_trial(params: dict[str, Any], *, sweep_dir: str, configs: dict[str, str]
         prior_s, start = record.seconds, time.monotonic()
         last_report = -math.inf
         latest: dict[str, float] = {}
+        since: list[float] = []  # (time, steps) of this session's first logged update
+
+        def eta_s(now: float) -> float:
+            """The remaining steps at this session's mean rate since its first logged update
+            (compilation left out: it would make the first ETAs far too long)."""
+            if not since or record.steps <= since[1]:
+                return math.nan
+            rate = (record.steps - since[1]) / max(now - since[0], 1e-9)
+            return (record.total_steps - record.steps) / rate
 
         def progress(update: int, train_state: Any, metrics: dict[str, float]) -> None:
             nonlocal last_report
@@ -74,6 +83,8 @@ def run_trial(params: dict[str, Any], *, sweep_dir: str, configs: dict[str, str]
                     latest[key] = float(metrics[key])
             record.steps = update * steps_per_update
             now = time.monotonic()
+            if not since:
+                since.extend((now, record.steps))
             if now - last_report < REPORT_EVERY_S and record.steps < record.total_steps:
                 return
             last_report = now
@@ -82,7 +93,7 @@ def run_trial(params: dict[str, Any], *, sweep_dir: str, configs: dict[str, str]
             tune.report({"steps": record.steps, "total_steps": record.total_steps,
                          "steps_per_s": latest.get("time/steps_per_s", math.nan),
                          "win_rate": latest.get("episode/win_rate", math.nan),
-                         "seconds": record.seconds, "failed": 0})
+                         "eta_s": eta_s(now), "seconds": record.seconds, "failed": 0})
 
         resume = (run_dir / CONFIG_FILE).is_file()
         with open(folder.log_path(name), "a") as log:
