@@ -116,7 +116,7 @@ points:
 """))
     log = tmp_path / "table.txt"
     with open(log, "w") as stream:
-        outcome = run_sweep(spec, num_cpus=4, stream=stream)
+        outcome = run_sweep(spec, num_cpus=2, stream=stream, reuse_processes=True)
     table = log.read_text()
     assert sorted(outcome.finished) == sorted(t.name for t in spec.trials if t.name != "bad")
     assert list(outcome.failed) == ["bad"] and "no_such_scenario" in outcome.failed["bad"]
@@ -135,7 +135,7 @@ points:
     assert {p.name for p in report.iterdir()} >= {"report.md", "results.csv", "trials.csv",
                                                   "curves-all.png"}
     rows = (report / "results.csv").read_text().splitlines()
-    assert rows[0].startswith("run.log_every,suite,seeds,mean") and len(rows) == 3
+    assert rows[0].startswith("run.log_every,env.scenario,suite,seeds,mean") and len(rows) == 3
     assert all(",train,2," in row for row in rows[1:])
 
 

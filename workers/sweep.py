@@ -181,9 +181,14 @@ def _error_line(trial: Any) -> str:
 
 def run_sweep(spec: SweepSpec, folder: str | Path | None = None, *, resume: bool = False,
               address: str | None = None, num_cpus: int | None = None,
-              stream: TextIO | None = None, table_every_s: float = 30.0) -> SweepOutcome:
+              stream: TextIO | None = None, table_every_s: float = 30.0,
+              reuse_processes: bool = False) -> SweepOutcome:
     """Run (or, with `resume`, continue) the sweep `spec` in `folder` (default: the sweep
-    file's own, `SweepSpec.folder`); the table goes to `stream` (default stderr)."""
+    file's own, `SweepSpec.folder`); the table goes to `stream` (default stderr).
+    `reuse_processes`: a trial process runs the next trial when its own ends (Tune's
+    `reuse_actors`), which saves starting a process and importing JAX per trial: for many
+    short trials (tests). Off by default: a process keeps what JAX compiled for every trial it
+    ran."""
     out = sys.stderr if stream is None else stream
     sweep = SweepFolder(spec.folder() if folder is None else folder)
     if resume and not sweep.exists():
@@ -226,6 +231,7 @@ def run_sweep(spec: SweepSpec, folder: str | Path | None = None, *, resume: bool
             param_space={"trial": tune.grid_search(names)},
             tune_config=tune.TuneConfig(
                 max_concurrent_trials=spec.max_concurrent or None,
+                reuse_actors=reuse_processes,
                 trial_name_creator=lambda t: t.config["trial"],
                 trial_dirname_creator=lambda t: t.config["trial"]),
             run_config=tune.RunConfig(

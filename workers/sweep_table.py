@@ -57,6 +57,14 @@ class SweepTable:
         self._last = -math.inf
         self.started = time.monotonic()
 
+    def __getstate__(self) -> dict:
+        # Tune pickles its callbacks (this table's) with its experiment state: not the stream.
+        return {**self.__dict__, "stream": None}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self.stream = sys.stderr if self.stream is None else self.stream
+
     def update(self, name: str, **values: object) -> None:
         """Set fields of a trial's row; a change of state draws the table at once."""
         row = self.rows.setdefault(name, Row(name))
