@@ -38,6 +38,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     print(f"{outcome.folder}: {done} of {len(spec.trials)} trials finished"
           + (f", {len(outcome.failed)} failed ({', '.join(outcome.failed)})"
              if outcome.failed else "")
+          + (f", {len(outcome.stopped)} stopped" if outcome.stopped else "")
           + f"; tabx sweep report {outcome.folder}")
     return 0 if outcome.ok else 1
 

@@ -46,10 +46,11 @@ class SweepOutcome:
     finished: list[str] = field(default_factory=list)
     failed: dict[str, str] = field(default_factory=dict)  # trial -> its error
     skipped: list[str] = field(default_factory=list)  # finished before this session
+    stopped: list[str] = field(default_factory=list)  # not finished (the sweep was stopped)
 
     @property
     def ok(self) -> bool:
-        return not self.failed
+        return not self.failed and not self.stopped
 
 
 def is_finished(folder: SweepFolder, trial: str) -> bool:
@@ -251,11 +252,16 @@ def run_sweep(spec: SweepSpec, folder: str | Path | None = None, *, resume: bool
             outcome.failed[name] = record.error or _result_error(result)
         elif record.state == "failed":
             outcome.failed[name] = record.error
-        else:
+        elif record.state == "finished":
             outcome.finished.append(name)
+        else:  # Ctrl-C: Tune ends the session with the trials where they are
+            outcome.stopped.append(name)
     table.draw(force=True)
     for name, error in outcome.failed.items():
         out.write(f"trial {name} failed: {error} (log: {sweep.log_path(name)})\n")
+    if outcome.stopped:
+        out.write(f"{len(outcome.stopped)} trials stopped before their end; `tabx sweep SPEC "
+                  f"--resume` continues them\n")
     return outcome
 
 
