@@ -74,6 +74,8 @@ resources: {cpus: 2, explorers: 1}
     ("base: base.yaml\ngrid: {seed: [0]}\nresources: {gpu: 1}\n", "resources.gpu: unknown"),
     ("grid: {seed: [0]}\n", "base: missing"),
     ("base: base.yaml\npoints: [{seed: 1}, {seed: 1}]\n", "two trials are named 'seed1'"),
+    ("base: base.yaml\ngrid: {metod: [dr, plr]}\n",
+     "trials dr and plr have the same config; does the named axis 'metod' set anything"),
 ])
 def test_a_bad_sweep_file_is_one_error_naming_file_and_field(tmp_path, text, message):
     path = write_spec(tmp_path, text)

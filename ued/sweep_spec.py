@@ -342,6 +342,16 @@ def _spec_from_dict(data: Any, path: Path, extra: tuple[str, ...]) -> SweepSpec:
             raise ConfigError(f"{where}, trial {trial_name}: {err}") from None
         trials.append(Trial(trial_name, tuple(labels), config, trial_overrides, str(resolved)))
 
+    seen: dict[str, str] = {}
+    for trial in trials:
+        # Two trials of one config are a mistake: typically a named axis that sets nothing (a
+        # misspelt config key without a dot, a label no {template} uses).
+        other = seen.setdefault(repr(trial.config), trial.name)
+        if other != trial.name:
+            unused = [a for a in axes if a not in keys and a != BASE_KEY]
+            hint = (f"; does the named axis {', '.join(map(repr, unused))} set anything (a "
+                    "misspelt config key, a label no {template} uses)?" if unused else "")
+            raise ConfigError(f"trials {other} and {trial.name} have the same config{hint}")
     resources = _resources(data.get("resources") or {})
     max_concurrent = data.get("max_concurrent", 0)
     if isinstance(max_concurrent, bool) or not isinstance(max_concurrent, int) or (
