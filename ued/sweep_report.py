@@ -233,14 +233,16 @@ def write_report(sweep_dir: str | Path, out: str | Path | None = None, partial: 
     writer.writerow(["trial", *axes, "sessions", "env_steps", "seconds", "steps_per_s"])
     trial_rows = []
     for r in results:
-        rate = r.steps / r.seconds if r.seconds > 0 else math.nan
-        writer.writerow([r.name, *_cell(r.labels, axes), r.sessions, r.steps,
+        steps = r.steps * max(len(r.curves), 1)  # a multi-seed run plays each seed's steps
+        rate = steps / r.seconds if r.seconds > 0 else math.nan
+        writer.writerow([r.name, *_cell(r.labels, axes), r.sessions, steps,
                          _num(r.seconds), _num(rate)])
-        trial_rows.append([r.name, str(r.sessions), f"{r.steps:,}", _minutes(r.seconds),
+        trial_rows.append([r.name, str(r.sessions), f"{steps:,}", _minutes(r.seconds),
                            "-" if not math.isfinite(rate) else f"{rate:,.0f}"])
     trials_csv = out_dir / "trials.csv"
     atomic_write_text(trials_csv, buffer.getvalue())
-    md += ["## Trials", "", _md_table(["trial", "sessions", "env steps", "time", "steps/s"],
+    md += ["## Trials", "", _md_table(["trial", "sessions", "env steps (all seeds)", "time",
+                                       "steps/s"],
                                       trial_rows), ""]
 
     figures = _figures(results, out_dir, seed_axis, line_axis, figure_axis, cell_axes)
