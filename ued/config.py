@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
 import math
 import types
 import typing
@@ -575,7 +576,7 @@ def _build(cls: type, data: Any, prefix: str) -> Any:
     if not isinstance(data, Mapping):
         raise ConfigError(f"{prefix or 'config'}: expected a mapping of keys to values, got "
                           f"{type(data).__name__}")
-    hints = typing.get_type_hints(cls)
+    hints = _type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls)}
     values = {}
     for key, value in data.items():
@@ -621,10 +622,16 @@ def read_config_file(path: str | Path) -> Any:
     return read_yaml(content, str(path))
 
 
+# A config class's field types, read once: typing evaluates the annotations' strings on every
+# call, which made reading a sweep of hundreds of configs take seconds per hundred.
+_type_hints = functools.cache(typing.get_type_hints)
+
+
+@functools.cache
 def _field_paths() -> dict[str, list[str]]:
     """Bare field name -> its dotted paths."""
     out: dict[str, list[str]] = {}
-    hints = typing.get_type_hints(TrainConfig)
+    hints = _type_hints(TrainConfig)
     for f in dataclasses.fields(TrainConfig):
         tp = hints[f.name]
         if dataclasses.is_dataclass(tp):
@@ -642,7 +649,7 @@ def apply_overrides(data: Any, overrides: Sequence[str], source: str = "config")
     out = {k: dict(v) if isinstance(v, Mapping) else v for k, v in data.items()}
     paths = _field_paths()
     sections = {f.name for f in dataclasses.fields(TrainConfig)
-                if dataclasses.is_dataclass(typing.get_type_hints(TrainConfig)[f.name])}
+                if dataclasses.is_dataclass(_type_hints(TrainConfig)[f.name])}
     for item in overrides:
         key, sep, text = item.partition("=")
         key = key.strip()
