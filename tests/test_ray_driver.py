@@ -480,3 +480,21 @@ def test_a_long_run_holds_no_more_object_refs_at_its_end_than_early_on(tmp_path)
     early = max(seen[s] for s in range(5, 15))
     late = max(seen[s] for s in range(30, 41))
     assert 0 < late <= early + 2, seen
+
+
+def test_two_learner_processes_train_as_one_learner_with_two_devices(tmp_path):
+    """`ray.learners: 2` of 1 device each (one JAX process group, gloo collectives) gives the
+    parameters of one learner with 2 devices, bit for bit (tests/test_learner_group.py: the
+    same update without Ray). Robust PLR, deterministic; learner 0 also scores."""
+    local = train(ued_config("robust_plr", **{"learner.num_devices": 2}),
+                  run_dir=tmp_path / "local", stream=io.StringIO(), max_updates=3)
+    config = ray_config("robust_plr", **{"ray.deterministic": "true", "ray.explorers": 0,
+                                         "ray.learners": 2, "learner.num_devices": 1})
+    remote = train(config, run_dir=tmp_path / "group", stream=io.StringIO(), max_updates=3)
+    state_a, key_a, step_a = final_state(local, ued_config("robust_plr"))
+    state_b, key_b, step_b = final_state(remote, ued_config("robust_plr"))
+    assert step_a == step_b == 3
+    assert trees_equal(state_a.params, state_b.params)
+    assert trees_equal(state_a.opt_state, state_b.opt_state)
+    record = json.loads((remote / RAY_RECORD).read_text())
+    assert record["learners"] == 2

@@ -150,9 +150,15 @@ class ExplorerActor(ActorBase):
 
 class LearnerActor(ExplorerActor):
     """The one learner: holds the train state and counts policy versions. It can also score
-    (`ray.explorers: 0`), with its own parameters."""
+    (`ray.explorers: 0`), with its own parameters. With `group` (coordinator HOST:PORT,
+    members, this member's index) it is one member of a learner group
+    (workers/learner_group.py): it joins JAX's multi-process runtime before JAX starts."""
 
-    def __init__(self, config: TrainConfig):
+    def __init__(self, config: TrainConfig, group: tuple[str, int, int] | None = None):
+        if group is not None:
+            from ued.learners import distributed
+
+            distributed.join(*group)
         super().__init__(config)
         self.state: LearnerWorker | None = None
 

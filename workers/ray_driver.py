@@ -63,6 +63,7 @@ from workers.actors import (
     ParamsRef,
 )
 from workers.driver import Callback, Driver, RunStopped
+from workers.learner_group import LearnerGroup, start_group
 from workers.ray_restarts import SERVICE, Chaos, RemoteService
 from workers.training_loop import Output, Report, Runner, train_loop
 from workers.ued_step import LevelRequest, UEDRun, branch_text
@@ -236,9 +237,15 @@ def start_workers(ray: Any, config: TrainConfig, stream: TextIO,
                     None if levels_dir is None else str(levels_dir), run_name or "",
                     num_cpus=0, restarts=restarts if levels_dir is not None else 0,
                     scheduling_strategy=NodeAffinitySchedulingStrategy(driver_node, soft=False))
-    learner = spawn(LearnerActor, "learner", config, num_gpus=gpus, num_cpus=1 if not gpus else 0,
-                    **({} if gpus else {"scheduling_strategy": NodeAffinitySchedulingStrategy(
-                        driver_node, soft=True)}))
+    if section.learners > 1:  # a learner group, placed by its own placement group
+        learner = start_group(ray, section.learners, gpus, lambda i, group, strategy: spawn(
+            LearnerActor, "learner" if i == 0 else f"learner-{i}", config, group,
+            num_gpus=gpus, num_cpus=1 if not gpus else 0, scheduling_strategy=strategy))
+    else:
+        learner = spawn(LearnerActor, "learner", config, num_gpus=gpus,
+                        num_cpus=1 if not gpus else 0,
+                        **({} if gpus else {"scheduling_strategy": NodeAffinitySchedulingStrategy(
+                            driver_node, soft=True)}))
     explorers = [spawn(ExplorerActor, f"explorer-{i}", config, num_cpus=1,
                        scheduling_strategy="SPREAD", restarts=restarts)
                  for i in range(section.explorers)]
@@ -250,8 +257,8 @@ def start_workers(ray: Any, config: TrainConfig, stream: TextIO,
 
 
 def cpus_needed(config: TrainConfig, gpus: float) -> int:
-    """CPUs the run's actors reserve: one per Explorer, one for a CPU learner."""
-    return config.ray.explorers + (0 if gpus else 1)
+    """CPUs the run's actors reserve: one per Explorer, one per CPU learner."""
+    return config.ray.explorers + (0 if gpus else config.ray.learners)
 
 
 def check_resources(ray: Any, config: TrainConfig, gpus: float) -> None:
@@ -744,7 +751,7 @@ class RayDriver(Driver):
         finally:
             if workers is not None:
                 for actor in workers.all():
-                    ray.kill(actor)
+                    actor.kill(ray) if isinstance(actor, LearnerGroup) else ray.kill(actor)
             if started:
                 ray.shutdown()
 
@@ -802,7 +809,8 @@ class RayRunner(Runner):
         self.learner = RemoteLearner(ray, workers.learner, self.version, self.actors)
         placement = workers.placement(ray)
         self.record.update(mode="deterministic" if self.deterministic else "asynchronous",
-                           learner_gpus=workers.gpus, placement=placement, steps=[start, start],
+                           learner_gpus=workers.gpus, learners=config.ray.learners,
+                           placement=placement, steps=[start, start],
                            total_steps=config.learner.num_updates)
         self.asynchronous = None if self.deterministic else AsyncRun(
             ray, config, self.run, self.learner, workers, self.service)

@@ -1,0 +1,72 @@
+"""A learner group (`ued.learners.distributed`): 2 processes of 1 CPU device each, joined by
+JAX's multi-process runtime on 127.0.0.1 with gloo collectives, run the update that one
+process with 2 devices runs, bit for bit.
+
+The two members are subprocesses (`learner_group_worker.py`); the reference runs in the test
+process (2 CPU devices, tests/conftest.py). Both split the envs the same way (process p's
+device holds the envs that device p holds in one process) and compile the same partitioned
+program; a sum over 2 shards is the same float sum in either order, so the results are equal
+bit for bit, not only to `rounding_bound`.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from learner_group_worker import group_updates
+
+from ued.learners.distributed import free_address
+
+WORKER = Path(__file__).with_name("learner_group_worker.py")
+GROUP_TIMEOUT_S = 240  # compiles included; a hung collective fails the test, not the suite
+
+
+def run_group(tmp_path: Path, algorithm: str, updates: int, minibatches: int
+              ) -> list[dict[str, np.ndarray]]:
+    """The worker's results of each member of a 2-process group."""
+    address = free_address()
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(WORKER.parent.parent), os.environ.get("PYTHONPATH", "")])}
+    outs = [tmp_path / f"member-{i}.npz" for i in range(2)]
+    procs = [subprocess.Popen([sys.executable, str(WORKER), algorithm, address, "2", str(i),
+                               str(updates), str(minibatches), str(outs[i])],
+                              env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                              text=True) for i in range(2)]
+    try:
+        logs = [p.communicate(timeout=GROUP_TIMEOUT_S)[0] for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    for p, log in zip(procs, logs, strict=True):
+        assert p.returncode == 0, log[-3000:]
+    return [dict(np.load(out)) for out in outs]
+
+
+def assert_same(reference: dict[str, np.ndarray], member: dict[str, np.ndarray]) -> None:
+    assert member["global_devices"] == 2 == reference["global_devices"]
+    assert sorted(member) == sorted(reference)
+    for name, value in reference.items():
+        np.testing.assert_array_equal(member[name], value, err_msg=name)
+
+
+@pytest.mark.parametrize(("algorithm", "updates", "minibatches"), [
+    ("mappo", 1, 1),
+    pytest.param("mappo", 2, 2, marks=pytest.mark.slow),
+    pytest.param("ippo", 2, 2, marks=pytest.mark.slow),
+])
+def test_two_processes_update_as_one_process_with_two_devices(tmp_path, algorithm, updates,
+                                                              minibatches):
+    """Parameters, metrics and the gathered rollout statistics of every member equal the
+    2-device process's, bit for bit (the slow cases: 2 updates, 2 minibatches, and IPPO;
+    the default case covers MAPPO's one update)."""
+    reference = group_updates(algorithm, 2, updates, minibatches)
+    members = run_group(tmp_path, algorithm, updates, minibatches)
+    assert reference["metrics/episode/count"] > 0
+    for member in members:
+        assert_same(reference, member)
