@@ -70,3 +70,53 @@ def test_two_processes_update_as_one_process_with_two_devices(tmp_path, algorith
     assert reference["metrics/episode/count"] > 0
     for member in members:
         assert_same(reference, member)
+
+
+class FakeMember:
+    """An actor handle that records the calls it is sent."""
+
+    def __init__(self, index: int, log: list):
+        self.index, self.log, self._actor_id = index, log, f"actor-{index}"
+
+    def __getattr__(self, method: str):
+        member = self
+
+        class Remote:
+            @staticmethod
+            def remote(*args, **kwargs):
+                member.log.append((member.index, method, args))
+                return f"ref-{member.index}-{method}"
+
+        return Remote
+
+
+def test_a_learner_group_sends_collective_calls_to_every_member():
+    """The Ray handle of a learner group (workers/learner_group.py): what changes the train
+    state or runs the update goes to every member with the same arguments; reads, scoring and
+    readiness go to learner 0, whose ref the driver waits on (the 2-learner Ray run:
+    tests/test_ray_driver.py, -m slow)."""
+    from workers.learner_group import COLLECTIVE, LearnerGroup
+
+    log: list = []
+    group = LearnerGroup([FakeMember(i, log) for i in range(3)], None, "127.0.0.1:1")
+    assert group.train.remote("levels", "key") == "ref-0-train"
+    assert log == [(i, "train", ("levels", "key")) for i in range(3)]
+    assert group.others == ["ref-1-train", "ref-2-train"]
+    log.clear()
+    for method in ("params", "train_state", "score_levels", "ready", "version"):
+        assert getattr(group, method).remote(1) == f"ref-0-{method}"
+    assert [entry[0] for entry in log] == [0] * 5
+    assert COLLECTIVE == {"init", "train", "train_scored", "set_train_state"}
+    assert group._actor_id == "actor-0"  # a death is named by learner 0's id
+
+
+def test_learner_group_settings_are_checked():
+    from test_ued_train import ued_config
+
+    from ued.config import ConfigError
+
+    with pytest.raises(ConfigError, match="ray.learners: must be >= 1"):
+        ued_config("robust_plr", **{"ray.enabled": "true", "ray.learners": 0})
+    with pytest.raises(ConfigError, match=r"ray.learners: 3 learners .* \(6\)"):
+        ued_config("robust_plr", **{"ray.enabled": "true", "ray.learners": 3})
+    assert ued_config("robust_plr", **{"ray.enabled": "true", "ray.learners": 2}).ray.learners == 2

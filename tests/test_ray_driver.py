@@ -482,19 +482,32 @@ def test_a_long_run_holds_no_more_object_refs_at_its_end_than_early_on(tmp_path)
     assert 0 < late <= early + 2, seen
 
 
-def test_two_learner_processes_train_as_one_learner_with_two_devices(tmp_path):
-    """`ray.learners: 2` of 1 device each (one JAX process group, gloo collectives) gives the
-    parameters of one learner with 2 devices, bit for bit (tests/test_learner_group.py: the
-    same update without Ray). Robust PLR, deterministic; learner 0 also scores."""
-    local = train(ued_config("robust_plr", **{"learner.num_devices": 2}),
-                  run_dir=tmp_path / "local", stream=io.StringIO(), max_updates=3)
+
+# With `-m slow`: tests/test_learner_group.py runs the same update in 2 processes by default,
+# and test_a_learner_group_sends_collective_calls_to_every_member its Ray handle.
+@pytest.mark.slow
+def test_two_learner_processes_train_as_one_learner_with_two_devices_and_resume_on_one(
+        tmp_path):
+    """`ray.learners: 2` (one JAX process group, gloo collectives; `learner.num_devices`
+    automatic: 1 device each for their 2 envs) trains as one learner with 2 devices, bit for
+    bit; its checkpoint (saved once, from learner 0) resumes on 1 learner (2 devices) and
+    continues as the uninterrupted run. Robust PLR, deterministic; learner 0 also scores."""
+    import dataclasses
+
+    local = train(ued_config("robust_plr"), run_dir=tmp_path / "local", stream=io.StringIO(),
+                  max_updates=3)
     config = ray_config("robust_plr", **{"ray.deterministic": "true", "ray.explorers": 0,
-                                         "ray.learners": 2, "learner.num_devices": 1})
-    remote = train(config, run_dir=tmp_path / "group", stream=io.StringIO(), max_updates=3)
+                                         "ray.learners": 2})
+    remote = train(config, run_dir=tmp_path / "group", stream=io.StringIO(), max_updates=2)
+    record = json.loads((remote / RAY_RECORD).read_text())
+    assert record["learners"] == 2 and len(record["learner_nodes"]) == 2
+    one = dataclasses.replace(config.ray, learners=1)
+    train(run_dir=remote, resume=True, ray=one, stream=io.StringIO(), max_updates=1)
+    record = json.loads((remote / RAY_RECORD).read_text())
+    assert record["learners"] == 1 and record["steps"] == [2, 3]
     state_a, key_a, step_a = final_state(local, ued_config("robust_plr"))
     state_b, key_b, step_b = final_state(remote, ued_config("robust_plr"))
     assert step_a == step_b == 3
     assert trees_equal(state_a.params, state_b.params)
     assert trees_equal(state_a.opt_state, state_b.opt_state)
-    record = json.loads((remote / RAY_RECORD).read_text())
-    assert record["learners"] == 2
+    assert np.array_equal(key_a, key_b)

@@ -58,6 +58,10 @@ class LearnerGroup:
             raise AttributeError(name)
         return _Method(self, name)
 
+    def nodes(self, ray: Any) -> list[str]:
+        """The id of each member's node, in member order."""
+        return ray.get([member.node.remote() for member in self.members])
+
     def kill(self, ray: Any) -> None:
         """Kill every member and release their placement group."""
         for member in self.members:

@@ -808,9 +808,11 @@ class RayRunner(Runner):
         self.start = start
         self.learner = RemoteLearner(ray, workers.learner, self.version, self.actors)
         placement = workers.placement(ray)
+        group = workers.learner if isinstance(workers.learner, LearnerGroup) else None
         self.record.update(mode="deterministic" if self.deterministic else "asynchronous",
                            learner_gpus=workers.gpus, learners=config.ray.learners,
                            placement=placement, steps=[start, start],
+                           **({"learner_nodes": group.nodes(ray)} if group else {}),
                            total_steps=config.learner.num_updates)
         self.asynchronous = None if self.deterministic else AsyncRun(
             ray, config, self.run, self.learner, workers, self.service)
