@@ -4,6 +4,7 @@
 
 joins the group (`ued.learners.distributed.join`) with one CPU device, runs UPDATES updates of
 the tiny learner of `group_updates` and saves the parameters, metrics and rollout statistics.
+ALGORITHM `die`: `sum_until_the_group_breaks` instead (the other arguments unused).
 """
 
 from __future__ import annotations
@@ -42,6 +43,34 @@ def group_updates(algorithm: str, devices: int, updates: int, minibatches: int
     return out
 
 
+def sum_until_the_group_breaks(process_id: int) -> None:
+    """Member 1 dies (SIGKILL) once the group is up; member 0 sums over the global mesh
+    until its collective fails, then exits with status 3 (a hang fails the test's timeout)."""
+    import signal
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from ued.learners import distributed
+
+    devices = distributed.group_devices(1)
+    mesh = jax.sharding.Mesh(np.asarray(devices), ("envs",))
+    split = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("envs"))
+    total = jax.jit(jnp.sum, out_shardings=jax.sharding.NamedSharding(
+        mesh, jax.sharding.PartitionSpec()))
+    x = distributed.to_global(np.ones(len(devices), np.float32), split)
+    assert float(total(x).addressable_data(0)) == 2.0
+    if process_id == 1:
+        os.kill(os.getpid(), signal.SIGKILL)
+    try:
+        while True:
+            total(x).block_until_ready()
+    except Exception as err:  # noqa: BLE001 - whatever the collective raises
+        print(f"collective failed: {err}", flush=True)
+        os._exit(3)
+
+
 def main(argv: list[str]) -> None:
     algorithm, coordinator, n, process_id, updates, minibatches, path = argv
     # One CPU device per process, set before JAX starts (the test session's flags ask for 2).
@@ -55,6 +84,8 @@ def main(argv: list[str]) -> None:
 
     distributed.join(coordinator, int(n), int(process_id), timeout_s=60,
                      heartbeat_timeout_s=5)
+    if algorithm == "die":
+        sum_until_the_group_breaks(int(process_id))
     import numpy as np
 
     np.savez(path, **group_updates(algorithm, 1, int(updates), int(minibatches)))

@@ -72,6 +72,34 @@ def test_two_processes_update_as_one_process_with_two_devices(tmp_path, algorith
         assert_same(reference, member)
 
 
+def test_a_killed_member_stops_the_group_within_seconds(tmp_path):
+    """Member 1 is SIGKILLed once the group is up: member 0's next collective fails (gloo's
+    connection closed; else JAX's heartbeat timeout, 5 s here, ends it) and it exits within
+    seconds instead of waiting for ever (the Ray group's restart: tests/test_ray_driver.py,
+    -m slow)."""
+    import time
+
+    address = free_address()
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(WORKER.parent.parent), os.environ.get("PYTHONPATH", "")])}
+    procs = [subprocess.Popen([sys.executable, str(WORKER), "die", address, "2", str(i), "0",
+                               "0", "-"], env=env, stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True) for i in range(2)]
+    try:
+        t0 = time.monotonic()
+        out = procs[0].communicate(timeout=60)[0]
+        took = time.monotonic() - t0
+        procs[1].wait(timeout=10)
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    assert procs[1].returncode == -9
+    assert procs[0].returncode != 0, out[-2000:]
+    assert took < 45, took  # start-up (imports, join, one compile) and the stop
+    assert "collective failed" in out or "heartbeat" in out, out[-2000:]
+
+
 class FakeMember:
     """An actor handle that records the calls it is sent."""
 
@@ -120,3 +148,30 @@ def test_learner_group_settings_are_checked():
     with pytest.raises(ConfigError, match=r"ray.learners: 3 learners .* \(6\)"):
         ued_config("robust_plr", **{"ray.enabled": "true", "ray.learners": 3})
     assert ued_config("robust_plr", **{"ray.enabled": "true", "ray.learners": 2}).ray.learners == 2
+
+
+def test_a_learner_group_restart_counts_the_steps_since_the_checkpoint(tmp_path):
+    """`Restarts` (the Ray driver's restart after a lost learner): the next session resumes
+    from the newest checkpoint, the steps done since it are lost and counted, and the call's
+    `max_updates` still ends where it would have (the Ray run: tests/test_ray_driver.py,
+    -m slow)."""
+    import io
+
+    import jax
+    import jax.numpy as jnp
+
+    from ued.checkpoint import Checkpoints
+    from ued.run_folder import CHECKPOINT_DIR
+    from workers.learner_group import Restarts
+
+    with Checkpoints(tmp_path / CHECKPOINT_DIR) as checkpoints:
+        checkpoints.save(4, {"w": jnp.zeros(2)}, jax.random.key(0))
+    restarts, out = Restarts(2), io.StringIO()
+    assert restarts.left() and restarts.fields() == {"learner_restarts": 0, "steps_lost": 0}
+    # A session from step 2 asked for 6 more (to 8), stopped after finishing step 7.
+    assert restarts.restart(tmp_path, 2, 7, 6, RuntimeError("learner died"), out) == 4
+    assert restarts.restart(tmp_path, 4, 5, None, RuntimeError("learner died"), out) is None
+    assert restarts.fields() == {"learner_restarts": 2, "steps_lost": 4}
+    assert not restarts.left()
+    assert "restart 1 of 2 (ray.learner_restarts) after learner died: the run continues from " \
+           "its checkpoint at step 4; 3 steps lost (3 in all)" in out.getvalue()

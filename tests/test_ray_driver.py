@@ -511,3 +511,42 @@ def test_two_learner_processes_train_as_one_learner_with_two_devices_and_resume_
     assert trees_equal(state_a.params, state_b.params)
     assert trees_equal(state_a.opt_state, state_b.opt_state)
     assert np.array_equal(key_a, key_b)
+
+
+# With `-m slow`: test_learner_group.py's killed-member test covers the group's stop, and
+# test_a_learner_group_restart_counts_the_steps_since_the_checkpoint the restart's count.
+@pytest.mark.slow
+def test_a_killed_learner_stops_its_group_and_the_run_restarts_from_its_checkpoint(tmp_path):
+    """`ray.learners: 2`, learner 1 SIGKILLed after step 3 (checkpoints every 2 steps): the
+    next update fails on learner 0 too (its collective loses a member), the run continues by
+    itself from the checkpoint of step 2 (`ray.learner_restarts: 1`), step 3 is lost and
+    played again, and the deterministic run ends as the uninterrupted local one."""
+    import signal
+
+    overrides = {"run.checkpoint_every": 2, "run.log_every": 1}
+    local = train(ued_config("robust_plr", **overrides), run_dir=tmp_path / "local",
+                  stream=io.StringIO(), max_updates=4)
+    run_dir = tmp_path / "group"
+
+    def kill_learner_1(done, train_state, values):
+        if done == 3 and not killed:
+            name = json.loads((run_dir / RAY_RECORD).read_text())["actors"]["learner"]
+            member = ray.get_actor(f"{name}-1", namespace=RAY_NAMESPACE)
+            os.kill(ray.get(member.pid.remote()), signal.SIGKILL)
+            killed.append(done)
+
+    killed: list[int] = []
+    config = ray_config("robust_plr", **overrides, **{
+        "ray.deterministic": "true", "ray.explorers": 0, "ray.learners": 2,
+        "ray.learner_restarts": 1})
+    out = io.StringIO()
+    train(config, run_dir=run_dir, stream=out, max_updates=4, callback=kill_learner_1)
+    assert killed == [3]
+    record = json.loads((run_dir / RAY_RECORD).read_text())
+    assert record["learner_restarts"] == 1 and record["steps_lost"] == 1, out.getvalue()[-3000:]
+    assert record["status"] == "finished" and record["steps"] == [2, 4]
+    assert "continues from its checkpoint at step 2; 1 steps lost" in out.getvalue()
+    state_a, key_a, step_a = final_state(local, ued_config("robust_plr"))
+    state_b, key_b, step_b = final_state(run_dir, ued_config("robust_plr"))
+    assert step_a == step_b == 4
+    assert trees_equal(state_a.params, state_b.params) and np.array_equal(key_a, key_b)

@@ -326,6 +326,7 @@ class RaySection:
     deterministic: bool = False  # the local driver's schedule, step by step (equal results)
     learner_gpus: float = -1.0  # GPUs of the learner actor; -1: one if the cluster has any
     learners: int = 1  # learner actors that run each update together (a JAX process group)
+    learner_restarts: int = 0  # times a run that lost its learner continues from a checkpoint
     num_cpus: int = 0  # CPUs of a Ray started here (0: Ray's own count)
     object_store_mb: int = 512  # object store of a Ray started here
     actor_restarts: int = -1  # restarts of each Explorer and the Evaluator (-1: no limit)
@@ -344,6 +345,8 @@ class RaySection:
                f"must be -1 (auto) or >= 0, got {self.learner_gpus}")
         _check(self.num_cpus >= 0, f"{prefix}.num_cpus", f"must be >= 0, got {self.num_cpus}")
         _check(self.learners >= 1, f"{prefix}.learners", f"must be >= 1, got {self.learners}")
+        _check(self.learner_restarts >= 0, f"{prefix}.learner_restarts",
+               f"must be >= 0, got {self.learner_restarts}")
         _check(self.object_store_mb >= 64, f"{prefix}.object_store_mb",
                f"must be >= 64, got {self.object_store_mb}")
         _check(self.actor_restarts >= -1, f"{prefix}.actor_restarts",

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import jax
 import jax.numpy as jnp
@@ -43,6 +43,10 @@ from workers.ued_step import evaluators_for, level_service_for
 # XLA settings itself (one CPU device per usable core of its node), when Ray loads the actor
 # class, before JAX starts its backend there (no module imported above starts it).
 xla_flags.apply()
+
+
+T = TypeVar("T")
+GROUP_LOST_EXIT = 75  # the exit status of a learner group member whose update failed
 
 
 @dataclass(frozen=True)
@@ -160,7 +164,28 @@ class LearnerActor(ExplorerActor):
 
             distributed.join(*group)
         super().__init__(config)
+        self.group = group
         self.state: LearnerWorker | None = None
+
+    def _together(self, fn: Callable[[], T]) -> T:
+        """`fn()`, an update the group runs together (its results on the host). A member whose
+        update fails (a collective that lost a member: gloo's connection closed) ends its
+        process: the group cannot go on, and the driver sees a learner lost, not an error of
+        the update."""
+        if self.group is None:
+            return fn()
+        try:
+            return fn()
+        except Exception:
+            import os
+            import sys
+            import traceback
+
+            traceback.print_exc()
+            sys.stderr.write(f"learner {self.group[2]} of {self.group[1]}: the group's update "
+                             f"failed; this member ends\n")
+            sys.stderr.flush()
+            os._exit(GROUP_LOST_EXIT)
 
     def init(self, key: jax.Array) -> None:
         self.state = LearnerWorker(self.learner, self.learner.init(key))
@@ -171,15 +196,18 @@ class LearnerActor(ExplorerActor):
         return self.state
 
     def train(self, levels: EnvParams, key: jax.Array) -> dict[str, float]:
-        metrics, _ = self._learner().train(to_device(levels), key)
-        return _host_metrics(metrics)
+        return self._together(lambda: _host_metrics(
+            self._learner().train(to_device(levels), key)[0]))
 
     def train_scored(self, levels: EnvParams, key: jax.Array, score: str,
                      max_returns: Any = None
                      ) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
-        metrics, scores, best = self._learner().train_scored(to_device(levels), key, score,
-                                                             max_returns)
-        return _host_metrics(metrics), scores, best
+        def run() -> tuple[dict[str, float], np.ndarray, np.ndarray]:
+            metrics, scores, best = self._learner().train_scored(to_device(levels), key, score,
+                                                                 max_returns)
+            return _host_metrics(metrics), scores, best
+
+        return self._together(run)
 
     def params(self) -> Any:
         """The current parameters as numpy (the driver owns the returned object)."""

@@ -22,7 +22,8 @@ ref then fails and the run stops as it does when its one learner dies.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from pathlib import Path
+from typing import Any, TextIO
 
 # Calls every member runs together (they run the update, or change the state it starts from).
 COLLECTIVE = frozenset({"init", "train", "train_scored", "set_train_state"})
@@ -69,6 +70,41 @@ class LearnerGroup:
         ray.util.remove_placement_group(self.placement_group)
 
 
+class Restarts:
+    """A run's restarts from its last checkpoint after a stop for a lost actor (its learner or
+    a learner group's member: the group stops as a whole), up to `limit`: each is logged with
+    the steps it loses (done since that checkpoint, played again) and counted in `ray.json`
+    (`learner_restarts`, `steps_lost`)."""
+
+    def __init__(self, limit: int):
+        self.limit, self.done, self.steps_lost = limit, 0, 0
+
+    def left(self) -> bool:
+        return self.done < self.limit
+
+    def fields(self) -> dict[str, int]:
+        return {"learner_restarts": self.done, "steps_lost": self.steps_lost}
+
+    def restart(self, run_dir: Path, start: int, reached: int, max_updates: int | None,
+                stopped: BaseException, stream: TextIO) -> int | None:
+        """Count a restart of the session that ran steps `start` to `reached` of a call that
+        asked for `max_updates` more; return the steps the next session runs (None: to the
+        end)."""
+        from ued.checkpoint import Checkpoints
+        from ued.run_folder import CHECKPOINT_DIR
+
+        with Checkpoints(run_dir / CHECKPOINT_DIR, create=False) as checkpoints:
+            latest = checkpoints.latest() or 0
+        lost = max(reached - latest, 0)
+        self.done += 1
+        self.steps_lost += lost
+        stream.write(f"ray: restart {self.done} of {self.limit} (ray.learner_restarts) after "
+                     f"{stopped}: the run continues from its checkpoint at step {latest}; "
+                     f"{lost} steps lost ({self.steps_lost} in all)\n")
+        stream.flush()
+        return None if max_updates is None else start + max_updates - latest
+
+
 def coordinator_address(ray: Any, placement_group: Any) -> str:
     """HOST:PORT free on the node of the group's bundle 0 (where learner 0 will run)."""
     from ray.util.scheduling_strategies import PlacementGroupSchedulingStrategy
@@ -101,4 +137,4 @@ def start_group(ray: Any, count: int, gpus: float,
     return LearnerGroup(members, group, coordinator)
 
 
-__all__ = ["COLLECTIVE", "LearnerGroup", "coordinator_address", "start_group"]
+__all__ = ["COLLECTIVE", "LearnerGroup", "Restarts", "coordinator_address", "start_group"]

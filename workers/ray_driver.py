@@ -63,7 +63,7 @@ from workers.actors import (
     ParamsRef,
 )
 from workers.driver import Callback, Driver, RunStopped
-from workers.learner_group import LearnerGroup, start_group
+from workers.learner_group import LearnerGroup, Restarts, start_group
 from workers.ray_restarts import SERVICE, Chaos, RemoteService
 from workers.training_loop import Output, Report, Runner, train_loop
 from workers.ued_step import LevelRequest, UEDRun, branch_text
@@ -720,8 +720,30 @@ class RayDriver(Driver):
     def run(self, config: TrainConfig, run_dir: Path, *, resume: bool = False,
             max_updates: int | None = None, progress: bool = True,
             stream: TextIO | None = None, callback: Callback | None = None) -> Path:
+        """The run, continued from its last checkpoint after each stop for a lost actor (a
+        learner above all: Ray restarts the others in place) up to `ray.learner_restarts`
+        times (`workers.learner_group.Restarts`)."""
         need_ued(config)
         stream = sys.stderr if stream is None else stream
+        restarts = Restarts(config.ray.learner_restarts)
+        while True:
+            self.runner: RayRunner | None = None
+            try:
+                return self.session(config, run_dir, resume=resume, max_updates=max_updates,
+                                    progress=progress, stream=stream, callback=callback,
+                                    restarts=restarts)
+            except RunStopped as stopped:
+                runner = self.runner
+                if runner is None or not restarts.left():
+                    raise
+                max_updates = restarts.restart(run_dir, runner.start, runner.reached,
+                                               max_updates, stopped, stream)
+                resume = True
+
+    def session(self, config: TrainConfig, run_dir: Path, *, resume: bool,
+                max_updates: int | None, progress: bool, stream: TextIO,
+                callback: Callback | None, restarts: Restarts) -> Path:
+        """One start of the run's actors and `train_loop` over them."""
         ray, started = connect(config.ray)
         workers = None
         record = RunRecord(run_dir / RAY_RECORD)
@@ -731,10 +753,11 @@ class RayDriver(Driver):
             record.update(status="running", driver_pid=os.getpid(),
                           address=ray.get_runtime_context().gcs_address,
                           namespace=RAY_NAMESPACE,
-                          actors={name: f"{run_name}/{name}" for name in workers.names()})
-            run_dir = train_loop(RayRunner(ray, workers, config, record, stream), run_dir,
-                                 resume=resume, max_updates=max_updates, progress=progress,
-                                 stream=stream, callback=callback)
+                          actors={name: f"{run_name}/{name}" for name in workers.names()},
+                          **restarts.fields())
+            self.runner = RayRunner(ray, workers, config, record, stream)
+            run_dir = train_loop(self.runner, run_dir, resume=resume, max_updates=max_updates,
+                                 progress=progress, stream=stream, callback=callback)
             record.update(status="finished")
             return run_dir
         except BaseException as err:
@@ -785,6 +808,7 @@ class RayRunner(Runner):
         self.learner: RemoteLearner | None = None
         self.asynchronous: AsyncRun | None = None
         self.chaos: Chaos | None = None
+        self.reached = 0  # steps done (a restart after a loss counts those since the checkpoint)
 
     @property
     def eval_every(self) -> int:
@@ -805,7 +829,7 @@ class RayRunner(Runner):
 
     def begin(self, start: int) -> None:
         ray, workers, config = self.ray, self.workers, self.config
-        self.start = start
+        self.start = self.reached = start
         self.learner = RemoteLearner(ray, workers.learner, self.version, self.actors)
         placement = workers.placement(ray)
         group = workers.learner if isinstance(workers.learner, LearnerGroup) else None
@@ -847,6 +871,7 @@ class RayRunner(Runner):
             self.metrics = metrics
         if asynchronous is not None and checkpoint_due:
             asynchronous.drain()  # a snapshot holds every issued batch's result
+        self.reached = index + 1
         return self.run.curriculum.learns(branch)
 
     def host_metrics(self) -> dict[str, Any]:
