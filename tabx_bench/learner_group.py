@@ -2,7 +2,7 @@
 group of N processes (`ued.learners.distributed`) beside the one-process update.
 
 N = 1 runs in the benchmark's own process (all its devices: one per core on a CPU). N > 1
-starts N member processes on this machine (`python -m tabx_bench.learner_group`), each with
+starts N member processes on this machine (`python -m tabx_bench.group_member`), each with
 its share of the cores as CPU devices (cores / N, at least 1), joined by JAX's multi-process
 runtime (gloo collectives on 127.0.0.1); every member runs `run_train_bench`'s protocol in
 step and member 0 reports. So 2 processes x 1 device against 1 process x 2 devices is the
@@ -18,7 +18,6 @@ gradient step. Dispatch of the standalone program is included (tens of microseco
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import statistics
@@ -94,7 +93,7 @@ def run_group(learners: int, options: dict[str, Any]) -> dict[str, Any]:
             [f for f in os.environ.get("XLA_FLAGS", "").split()
              if "xla_force_host_platform_device_count" not in f]
             + [f"--xla_force_host_platform_device_count={per}"])}
-        procs = [subprocess.Popen([sys.executable, "-m", "tabx_bench.learner_group", address,
+        procs = [subprocess.Popen([sys.executable, "-m", "tabx_bench.group_member", address,
                                    str(learners), str(i), json.dumps(options), str(out)],
                                   env=env) for i in range(learners)]
         try:
@@ -108,26 +107,3 @@ def run_group(learners: int, options: dict[str, Any]) -> dict[str, Any]:
         if failed:
             raise RuntimeError(f"learner group members {failed} failed (see their output)")
         return json.loads(out.read_text())
-
-
-def member(address: str, learners: int, index: int, options: dict[str, Any],
-           out: str) -> None:
-    """One member process of `run_group`: the `tabx` command's XLA settings (its share of
-    the cores as devices, set by `run_group`), then the group and the benchmark."""
-    from tabx import xla_flags
-
-    xla_flags.apply()
-    from ued.learners import distributed
-
-    distributed.join(address, learners, index)
-    from tabx_bench.train import run_train_bench
-
-    result = run_train_bench(**options, learners=learners)
-    if index == 0:
-        Path(out).write_text(json.dumps(dataclasses.asdict(result)))
-    distributed.leave()
-
-
-if __name__ == "__main__":
-    _address, _learners, _index, _options, _out = sys.argv[1:]
-    member(_address, int(_learners), int(_index), json.loads(_options), _out)

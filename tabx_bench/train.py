@@ -13,7 +13,9 @@ per update. A fresh learner is built for each algorithm (no compiled function is
 persistent compilation cache, if the user configured one, is switched off for the run), and the
 level batch is a jit argument, as in training. `--reference-like` trains with the reference's
 structure instead (see `reference_like`), to compare on the same machine at the same moment.
-`--matmul-dtype` sets `learner.matmul_dtype` (default: the config default, bfloat16). """
+`--matmul-dtype` sets `learner.matmul_dtype` (default: the config default, bfloat16).
+`--learners 1,2` runs the protocol once per learner-group size (tabx_bench.learner_group: N > 1
+in N processes of this machine), each with its reduction time per update. """
 
 from __future__ import annotations
 
