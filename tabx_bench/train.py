@@ -211,10 +211,6 @@ def _algorithms(text: str) -> list[str]:
     return names
 
 
-def _counts(text: str) -> list[int]:
-    return [_positive(t) for t in text.split(",") if t] or [_positive(text)]
-
-
 def _positive(text: str) -> int:
     try:
         value = int(text)
@@ -227,6 +223,8 @@ def _positive(text: str) -> int:
 
 def add_train_bench(which: argparse._SubParsersAction) -> None:
     """Add `train` to the `tabx bench` sub-commands (`which` = bench.add_subparsers(...))."""
+    from tabx_bench.arguments import int_list
+
     p = which.add_parser("train", help="learners' training throughput (env steps/s)")
     p.add_argument("--algorithms", type=_algorithms, default=["mappo", "ippo"],
                    help="comma-separated learners: mappo, ippo, iql, vdn, qmix "
@@ -245,7 +243,7 @@ def add_train_bench(which: argparse._SubParsersAction) -> None:
     p.add_argument("--matmul-dtype", choices=MATMUL_DTYPES, default=None,
                    help="the networks' matmul inputs (learner.matmul_dtype; default: the "
                         "config default, bfloat16)")
-    p.add_argument("--learners", type=_counts, default=[1],
+    p.add_argument("--learners", type=int_list(1), default=[1],
                    help="comma-separated learner-group sizes: 1 runs here, N > 1 in N "
                         "processes of this machine sharing its cores (default 1)")
     p.add_argument("--json", help="also write results as JSON lines to this file")
