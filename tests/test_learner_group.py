@@ -14,7 +14,9 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -26,9 +28,11 @@ WORKER = Path(__file__).with_name("learner_group_worker.py")
 GROUP_TIMEOUT_S = 240  # compiles included; a hung collective fails the test, not the suite
 
 
-def run_group(tmp_path: Path, algorithm: str, updates: int, minibatches: int
-              ) -> list[dict[str, np.ndarray]]:
-    """The worker's results of each member of a 2-process group."""
+def run_group(tmp_path: Path, algorithm: str, updates: int, minibatches: int,
+              meanwhile: Callable[[], Any] = lambda: None
+              ) -> tuple[list[dict[str, np.ndarray]], Any]:
+    """The worker's results of each member of a 2-process group, and what `meanwhile()`
+    returned (it runs here while the members start and compile)."""
     address = free_address()
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(
         [str(WORKER.parent.parent), os.environ.get("PYTHONPATH", "")])}
@@ -38,6 +42,7 @@ def run_group(tmp_path: Path, algorithm: str, updates: int, minibatches: int
                               env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                               text=True) for i in range(2)]
     try:
+        here = meanwhile()
         logs = [p.communicate(timeout=GROUP_TIMEOUT_S)[0] for p in procs]
     finally:
         for p in procs:
@@ -45,7 +50,7 @@ def run_group(tmp_path: Path, algorithm: str, updates: int, minibatches: int
                 p.kill()
     for p, log in zip(procs, logs, strict=True):
         assert p.returncode == 0, log[-3000:]
-    return [dict(np.load(out)) for out in outs]
+    return [dict(np.load(out)) for out in outs], here
 
 
 def assert_same(reference: dict[str, np.ndarray], member: dict[str, np.ndarray]) -> None:
@@ -65,8 +70,8 @@ def test_two_processes_update_as_one_process_with_two_devices(tmp_path, algorith
     """Parameters, metrics and the gathered rollout statistics of every member equal the
     2-device process's, bit for bit (the slow cases: 2 updates, 2 minibatches, and IPPO;
     the default case covers MAPPO's one update)."""
-    reference = group_updates(algorithm, 2, updates, minibatches)
-    members = run_group(tmp_path, algorithm, updates, minibatches)
+    members, reference = run_group(tmp_path, algorithm, updates, minibatches, lambda: (
+        group_updates(algorithm, 2, updates, minibatches)))
     assert reference["metrics/episode/count"] > 0
     for member in members:
         assert_same(reference, member)

@@ -326,7 +326,7 @@ class RaySection:
     deterministic: bool = False  # the local driver's schedule, step by step (equal results)
     learner_gpus: float = -1.0  # GPUs of the learner actor; -1: one if the cluster has any
     learners: int = 1  # learner actors that run each update together (a JAX process group)
-    learner_restarts: int = 0  # times a run that lost its learner continues from a checkpoint
+    learner_restarts: int = 0  # times a run stopped by a lost actor (its learner) resumes itself
     num_cpus: int = 0  # CPUs of a Ray started here (0: Ray's own count)
     object_store_mb: int = 512  # object store of a Ray started here
     actor_restarts: int = -1  # restarts of each Explorer and the Evaluator (-1: no limit)
