@@ -66,6 +66,7 @@ class UEDBenchResult:
     rescored: int = 0
     branches: dict[str, int] = field(default_factory=dict)
     step_seconds: list[float] = field(default_factory=list)  # per timed step (not async)
+    learners: int = 1  # learner actors of the group (`ray.learners`)
 
     @property
     def trained_per_s(self) -> float:
@@ -82,9 +83,10 @@ class UEDBenchResult:
         explorers = f"{self.explorers} explorer{'' if self.explorers == 1 else 's'}"
         if self.driver == "ray-deterministic":
             return f"ray, {explorers}, deterministic"
+        group = f", {self.learners} learners" if self.learners > 1 else ""
         if self.driver == "ray-continuous":
-            return f"ray, {explorers}, continuous"
-        return f"ray, {explorers}"
+            return f"ray, {explorers}, continuous{group}"
+        return f"ray, {explorers}{group}"
 
     def to_json(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)
@@ -201,8 +203,10 @@ class RayStepper:
         self.ray.get(self.workers.learner.version.remote())
 
     def close(self) -> None:
+        from workers.learner_group import LearnerGroup
+
         for actor in self.workers.all():
-            self.ray.kill(actor)
+            actor.kill(self.ray) if isinstance(actor, LearnerGroup) else self.ray.kill(actor)
 
 
 def _warm_up(stepper: LocalStepper | RayStepper, warmup: int) -> None:
@@ -234,7 +238,7 @@ def _result(stepper: LocalStepper | RayStepper, branches: Counter,
         learner_busy_fraction=stats.learner_busy_s / seconds,
         wait_for_levels_s=stats.wait_for_levels_s,
         staleness={str(k): v for k, v in sorted(stats.staleness.items())},
-        rescored=stats.rescored, branches=counts)
+        rescored=stats.rescored, branches=counts, learners=config.ray.learners)
 
 
 def bench_interleaved(steppers: list[LocalStepper | RayStepper], warmup: int,
@@ -276,10 +280,12 @@ def bench_async(ray: Any, config: TrainConfig, warmup: int, steps: int,
 
 def run_ued_bench(config: TrainConfig, explorers: list[int], warmup: int, steps: int,
                   local: bool = True, stream: TextIO | None = None,
-                  restarts: list[RestartResult] | None = None) -> list[UEDBenchResult]:
+                  restarts: list[RestartResult] | None = None,
+                  learners: tuple[int, ...] = (1,)) -> list[UEDBenchResult]:
     """Every setting in turn (see the module doc); a line per setting on `stream`. With a
     `restarts` list, an Explorer's restart is timed too (compilation cache off, then on) and
-    appended to it."""
+    appended to it. `learners`: the asynchronous settings run with each learner-group size
+    (`ray.learners`)."""
     from workers.ray_driver import connect
 
     stream = sys.stderr if stream is None else stream
@@ -298,6 +304,7 @@ def run_ued_bench(config: TrainConfig, explorers: list[int], warmup: int, steps:
 
     labels = ([label("local", 0), label("ray-deterministic", 0)] if local else []) + [
         label("ray-continuous" if config.ray.schedule == "continuous" else "ray", n)
+        + (f", {g} learners" if g > 1 else "") for g in learners
         for n in explorers]
     stream.write(f"bench ued: {config.ued.method}, at least {warmup} warm-up + {steps} timed "
                  f"steps of {config.learner.steps_per_update:,} env steps; settings: "
@@ -307,14 +314,14 @@ def run_ued_bench(config: TrainConfig, explorers: list[int], warmup: int, steps:
         # A Ray started here gets a logical CPU per actor that reserves one (a learner and
         # the most Explorers asked for), whatever the core count: the bench measures sharing.
         config = dataclasses.replace(config, ray=dataclasses.replace(
-            config.ray, num_cpus=max([0, *explorers]) + 1))
+            config.ray, num_cpus=max([0, *explorers]) + max(learners)))
 
-    def setting(n: int, deterministic: bool) -> TrainConfig:
+    def setting(n: int, deterministic: bool, group: int = 1) -> TrainConfig:
         # The deterministic schedule is the sequential one (whatever ray.schedule says).
         schedule = "sequential" if deterministic else config.ray.schedule
         return dataclasses.replace(config, ray=dataclasses.replace(
             config.ray, enabled=True, explorers=n, deterministic=deterministic,
-            schedule=schedule)).validate()
+            schedule=schedule, learners=group)).validate()
 
     ray, connected_here = connect(config.ray)
     try:
@@ -331,10 +338,12 @@ def run_ued_bench(config: TrainConfig, explorers: list[int], warmup: int, steps:
                     stepper.close()
             for result in results:
                 report(result, started)
-        for n in explorers:
-            started = time.perf_counter()
-            results.append(bench_async(ray, setting(n, False), warmup, steps, stream))
-            report(results[-1], started)
+        for group in learners:
+            for n in explorers:
+                started = time.perf_counter()
+                results.append(bench_async(ray, setting(n, False, group), warmup, steps,
+                                           stream))
+                report(results[-1], started)
         if restarts is not None:
             restarts += [bench_restart(ray, config, cache, stream) for cache in (False, True)]
     finally:
@@ -506,7 +515,8 @@ def bench_ued(args: argparse.Namespace) -> int:
             return bench_simulated(config, args)
         restarts: list[RestartResult] | None = [] if args.restart else None
         results = run_ued_bench(config, args.explorers, args.warmup, args.steps,
-                                local=not args.no_local, restarts=restarts)
+                                local=not args.no_local, restarts=restarts,
+                                learners=tuple(args.learners))
     except ConfigError as err:
         raise UserError(str(err)) from None
     print(format_table(results))
@@ -565,6 +575,9 @@ def add_ued_bench(which: argparse._SubParsersAction) -> None:
                    help="untimed steps first: start-up, compilation (default 4)")
     p.add_argument("--steps", type=int_at_least(1), default=16,
                    help="timed curriculum steps per setting (default 16)")
+    p.add_argument("--learners", type=int_list(1), default=[1],
+                   help="comma-separated learner-group sizes (ray.learners) of the "
+                        "asynchronous settings (default 1)")
     p.add_argument("--no-local", action="store_true", help="skip the local driver")
     p.add_argument("--restart", action="store_true",
                    help="also time the restart of an Explorer and of the LevelService (with "

@@ -501,6 +501,7 @@ def test_a_long_run_holds_no_more_object_refs_at_its_end_and_can_be_inspected_wh
     assert main(["runs", "buffer", str(run_dir)]) == 2
     assert main(["runs", "status", str(tmp_path / "nowhere")]) == 2
 
+
 # With `-m slow`: tests/test_ray_schedule.py's continuous tests (stand-in Ray) check that every
 # issued batch is committed once and stale ones are scored again, without kills.
 @pytest.mark.slow
@@ -555,3 +556,72 @@ def test_the_simulated_control_plane_keeps_8_explorers_near_their_ideal_rate():
     result = simulate(ray, config, 8, batch_s=0.2, learner_s=0.2, seconds=2.0)
     assert result.committed_per_s >= 0.5 * result.ideal_per_s, result
     assert result.learner_steps >= 3 and result.service_fsyncs < result.service_calls
+
+
+# With `-m slow`: tests/test_learner_group.py runs the same update in 2 processes by default,
+# and test_a_learner_group_sends_collective_calls_to_every_member its Ray handle.
+@pytest.mark.slow
+def test_two_learner_processes_train_as_one_learner_with_two_devices_and_resume_on_one(
+        tmp_path):
+    """`ray.learners: 2` (one JAX process group, gloo collectives; `learner.num_devices`
+    automatic: 1 device each for their 2 envs) trains as one learner with 2 devices, bit for
+    bit; its checkpoint (saved once, from learner 0) resumes on 1 learner (2 devices) and
+    continues as the uninterrupted run. Robust PLR, deterministic; learner 0 also scores."""
+    import dataclasses
+
+    local = train(ued_config("robust_plr"), run_dir=tmp_path / "local", stream=io.StringIO(),
+                  max_updates=3)
+    config = ray_config("robust_plr", **{"ray.deterministic": "true", "ray.explorers": 0,
+                                         "ray.learners": 2})
+    remote = train(config, run_dir=tmp_path / "group", stream=io.StringIO(), max_updates=2)
+    record = json.loads((remote / RAY_RECORD).read_text())
+    assert record["learners"] == 2 and len(record["learner_nodes"]) == 2
+    one = dataclasses.replace(config.ray, learners=1)
+    train(run_dir=remote, resume=True, ray=one, stream=io.StringIO(), max_updates=1)
+    record = json.loads((remote / RAY_RECORD).read_text())
+    assert record["learners"] == 1 and record["steps"] == [2, 3]
+    state_a, key_a, step_a = final_state(local, ued_config("robust_plr"))
+    state_b, key_b, step_b = final_state(remote, ued_config("robust_plr"))
+    assert step_a == step_b == 3
+    assert trees_equal(state_a.params, state_b.params)
+    assert trees_equal(state_a.opt_state, state_b.opt_state)
+    assert np.array_equal(key_a, key_b)
+
+
+# With `-m slow`: test_learner_group.py's killed-member test covers the group's stop, and
+# test_a_learner_group_restart_counts_the_steps_since_the_checkpoint the restart's count.
+@pytest.mark.slow
+def test_a_killed_learner_stops_its_group_and_the_run_restarts_from_its_checkpoint(tmp_path):
+    """`ray.learners: 2`, learner 1 SIGKILLed after step 3 (checkpoints every 2 steps): the
+    next update fails on learner 0 too (its collective loses a member), the run continues by
+    itself from the checkpoint of step 2 (`ray.learner_restarts: 1`), step 3 is lost and
+    played again, and the deterministic run ends as the uninterrupted local one."""
+    import signal
+
+    overrides = {"run.checkpoint_every": 2, "run.log_every": 1}
+    local = train(ued_config("robust_plr", **overrides), run_dir=tmp_path / "local",
+                  stream=io.StringIO(), max_updates=4)
+    run_dir = tmp_path / "group"
+
+    def kill_learner_1(done, train_state, values):
+        if done == 3 and not killed:
+            name = json.loads((run_dir / RAY_RECORD).read_text())["actors"]["learner"]
+            member = ray.get_actor(f"{name}-1", namespace=RAY_NAMESPACE)
+            os.kill(ray.get(member.pid.remote()), signal.SIGKILL)
+            killed.append(done)
+
+    killed: list[int] = []
+    config = ray_config("robust_plr", **overrides, **{
+        "ray.deterministic": "true", "ray.explorers": 0, "ray.learners": 2,
+        "ray.learner_restarts": 1})
+    out = io.StringIO()
+    train(config, run_dir=run_dir, stream=out, max_updates=4, callback=kill_learner_1)
+    assert killed == [3]
+    record = json.loads((run_dir / RAY_RECORD).read_text())
+    assert record["learner_restarts"] == 1 and record["steps_lost"] == 1, out.getvalue()[-3000:]
+    assert record["status"] == "finished" and record["steps"] == [2, 4]
+    assert "continues from its checkpoint at step 2; 1 steps lost" in out.getvalue()
+    state_a, key_a, step_a = final_state(local, ued_config("robust_plr"))
+    state_b, key_b, step_b = final_state(run_dir, ued_config("robust_plr"))
+    assert step_a == step_b == 4
+    assert trees_equal(state_a.params, state_b.params) and np.array_equal(key_a, key_b)

@@ -333,6 +333,8 @@ class RaySection:
     # ACCEL; docs/distributed.md, "Continuous scoring")
     schedule: str = "sequential"
     learner_gpus: float = -1.0  # GPUs of the learner actor; -1: one if the cluster has any
+    learners: int = 1  # learner actors that run each update together (a JAX process group)
+    learner_restarts: int = 0  # times a run stopped by a lost actor (its learner) resumes itself
     num_cpus: int = 0  # CPUs of a Ray started here (0: Ray's own count)
     object_store_mb: int = 512  # object store of a Ray started here
     actor_restarts: int = -1  # restarts of each Explorer and the Evaluator (-1: no limit)
@@ -355,6 +357,9 @@ class RaySection:
         _check(self.learner_gpus == -1.0 or self.learner_gpus >= 0, f"{prefix}.learner_gpus",
                f"must be -1 (auto) or >= 0, got {self.learner_gpus}")
         _check(self.num_cpus >= 0, f"{prefix}.num_cpus", f"must be >= 0, got {self.num_cpus}")
+        _check(self.learners >= 1, f"{prefix}.learners", f"must be >= 1, got {self.learners}")
+        _check(self.learner_restarts >= 0, f"{prefix}.learner_restarts",
+               f"must be >= 0, got {self.learner_restarts}")
         _check(self.object_store_mb >= 64, f"{prefix}.object_store_mb",
                f"must be >= 64, got {self.object_store_mb}")
         _check(self.actor_restarts >= -1, f"{prefix}.actor_restarts",
@@ -397,6 +402,14 @@ class TrainConfig:
         self.ued.validate()
         self.levels.validate()
         self.ray.validate()
+        if self.ray.enabled and self.ray.learners > 1:
+            share = self.ray.learners * max(self.learner.num_devices, 1) * (
+                self.learner.num_minibatches)
+            _check(learner.devices and self.learner.num_envs % share == 0, "ray.learners",
+                   f"{self.ray.learners} learners split each minibatch of learner.num_envs "
+                   f"({self.learner.num_envs}) over their devices: it must divide by "
+                   f"learners x num_devices x num_minibatches ({share}), for a learner that "
+                   f"runs on several devices")
         self._validate_seeds()
         _check(not self.run.value_error_every or learner.value_head,
                "run.value_error_every", f"the value error compares a value head with Monte-Carlo "

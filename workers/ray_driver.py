@@ -67,6 +67,7 @@ from workers.actors import (
     ParamsRef,
 )
 from workers.driver import Callback, Driver, RunStopped
+from workers.learner_group import LearnerGroup, Restarts, start_group
 from workers.ray_restarts import SERVICE, Chaos, RemoteService
 from workers.training_loop import Output, Report, Runner, train_loop
 from workers.ued_step import LevelRequest, UEDRun, branch_text
@@ -240,9 +241,15 @@ def start_workers(ray: Any, config: TrainConfig, stream: TextIO,
                     None if levels_dir is None else str(levels_dir), run_name or "",
                     num_cpus=0, restarts=restarts if levels_dir is not None else 0,
                     scheduling_strategy=NodeAffinitySchedulingStrategy(driver_node, soft=False))
-    learner = spawn(LearnerActor, "learner", config, num_gpus=gpus, num_cpus=1 if not gpus else 0,
-                    **({} if gpus else {"scheduling_strategy": NodeAffinitySchedulingStrategy(
-                        driver_node, soft=True)}))
+    if section.learners > 1:  # a learner group, placed by its own placement group
+        learner = start_group(ray, section.learners, gpus, lambda i, group, strategy: spawn(
+            LearnerActor, "learner" if i == 0 else f"learner-{i}", config, group,
+            num_gpus=gpus, num_cpus=1 if not gpus else 0, scheduling_strategy=strategy))
+    else:
+        learner = spawn(LearnerActor, "learner", config, num_gpus=gpus,
+                        num_cpus=1 if not gpus else 0,
+                        **({} if gpus else {"scheduling_strategy": NodeAffinitySchedulingStrategy(
+                            driver_node, soft=True)}))
     explorers = [spawn(ExplorerActor, f"explorer-{i}", config, num_cpus=1,
                        scheduling_strategy="SPREAD", restarts=restarts)
                  for i in range(section.explorers)]
@@ -254,8 +261,8 @@ def start_workers(ray: Any, config: TrainConfig, stream: TextIO,
 
 
 def cpus_needed(config: TrainConfig, gpus: float) -> int:
-    """CPUs the run's actors reserve: one per Explorer, one for a CPU learner."""
-    return config.ray.explorers + (0 if gpus else 1)
+    """CPUs the run's actors reserve: one per Explorer, one per CPU learner."""
+    return config.ray.explorers + (0 if gpus else config.ray.learners)
 
 
 def check_resources(ray: Any, config: TrainConfig, gpus: float) -> None:
@@ -740,8 +747,30 @@ class RayDriver(Driver):
     def run(self, config: TrainConfig, run_dir: Path, *, resume: bool = False,
             max_updates: int | None = None, progress: bool = True,
             stream: TextIO | None = None, callback: Callback | None = None) -> Path:
+        """The run, continued from its last checkpoint after each stop for a lost actor (a
+        learner above all: Ray restarts the others in place) up to `ray.learner_restarts`
+        times (`workers.learner_group.Restarts`)."""
         need_ued(config)
         stream = sys.stderr if stream is None else stream
+        restarts = Restarts(config.ray.learner_restarts)
+        while True:
+            self.runner: RayRunner | None = None
+            try:
+                return self.session(config, run_dir, resume=resume, max_updates=max_updates,
+                                    progress=progress, stream=stream, callback=callback,
+                                    restarts=restarts)
+            except RunStopped as stopped:
+                runner = self.runner
+                if runner is None or not restarts.left():
+                    raise
+                max_updates = restarts.restart(run_dir, runner.start, runner.reached,
+                                               max_updates, stopped, stream)
+                resume = True
+
+    def session(self, config: TrainConfig, run_dir: Path, *, resume: bool,
+                max_updates: int | None, progress: bool, stream: TextIO,
+                callback: Callback | None, restarts: Restarts) -> Path:
+        """One start of the run's actors and `train_loop` over them."""
         ray, started = connect(config.ray)
         workers = None
         record = RunRecord(run_dir / RAY_RECORD)
@@ -751,11 +780,11 @@ class RayDriver(Driver):
             record.update(status="running", driver_pid=os.getpid(),
                           address=ray.get_runtime_context().gcs_address,
                           namespace=RAY_NAMESPACE,
-                          actors={name: f"{run_name}/{name}" for name in workers.names()})
-            runner = RayRunner(ray, workers, config, record, stream, self.schedules)
-            run_dir = train_loop(runner, run_dir,
-                                 resume=resume, max_updates=max_updates, progress=progress,
-                                 stream=stream, callback=callback)
+                          actors={name: f"{run_name}/{name}" for name in workers.names()},
+                          **restarts.fields())
+            self.runner = RayRunner(ray, workers, config, record, stream, self.schedules)
+            run_dir = train_loop(self.runner, run_dir, resume=resume, max_updates=max_updates,
+                                 progress=progress, stream=stream, callback=callback)
             record.update(status="finished")
             return run_dir
         except BaseException as err:
@@ -772,7 +801,7 @@ class RayDriver(Driver):
         finally:
             if workers is not None:
                 for actor in workers.all():
-                    ray.kill(actor)
+                    actor.kill(ray) if isinstance(actor, LearnerGroup) else ray.kill(actor)
             if started:
                 ray.shutdown()
 
@@ -808,6 +837,7 @@ class RayRunner(Runner):
         self.asynchronous: AsyncRun | None = None
         self.chaos: Chaos | None = None
         self._asked: tuple[Call, Call] | None = None  # the service's statistics, asked for
+        self.reached = 0  # steps done (a restart after a loss counts those since the checkpoint)
 
     @property
     def eval_every(self) -> int:
@@ -828,11 +858,14 @@ class RayRunner(Runner):
 
     def begin(self, start: int) -> None:
         ray, workers, config = self.ray, self.workers, self.config
-        self.start = start
+        self.start = self.reached = start
         self.learner = RemoteLearner(ray, workers.learner, self.version, self.actors)
         placement = workers.placement(ray)
-        self.record.update(mode=self.mode, learner_gpus=workers.gpus, placement=placement,
-                           steps=[start, start], total_steps=config.learner.num_updates)
+        group = workers.learner if isinstance(workers.learner, LearnerGroup) else None
+        self.record.update(mode=self.mode, learner_gpus=workers.gpus,
+                           learners=config.ray.learners, placement=placement, steps=[start, start],
+                           **({"learner_nodes": group.nodes(ray)} if group else {}),
+                           total_steps=config.learner.num_updates)
         if self.deterministic:
             self.asynchronous = None
         else:
@@ -880,6 +913,7 @@ class RayRunner(Runner):
             self.metrics = metrics
         if asynchronous is not None and checkpoint_due:
             asynchronous.drain()  # a snapshot holds every issued batch's result
+        self.reached = index + 1
         return self.run.curriculum.learns(branch)
 
     def host_metrics(self) -> dict[str, Any]:
