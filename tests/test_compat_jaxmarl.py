@@ -6,6 +6,7 @@ is installed (the `peers` extra); `pytest -m peers` runs all of them, the slow l
 
 from __future__ import annotations
 
+import copy
 from typing import NamedTuple
 
 import jax
@@ -13,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+import yaml
 
 jaxmarl = pytest.importorskip("jaxmarl")
 pytestmark = pytest.mark.peers
@@ -26,7 +28,8 @@ from jaxmarl.wrappers.baselines import (  # noqa: E402
     SMAXLogWrapper,
 )
 
-from tabx.compat.jaxmarl import TabxJaxMARLEnv  # noqa: E402
+from tabx.compat.jaxmarl import TabxJaxMARLEnv, make_env  # noqa: E402
+from tabx.controllers import Controller  # noqa: E402
 from tabx.params import level_config  # noqa: E402
 from tabx.scenarios import load_named  # noqa: E402
 
@@ -245,3 +248,37 @@ def test_one_update_of_a_jaxmarl_style_ppo_loop(env, centralised):
     loss, moved, info = jax.jit(lambda: one_update(env, centralised))()
     assert np.isfinite(float(loss)) and bool(moved)
     assert info["returned_episode_returns"].shape == (16, env.num_agents * NUM_ENVS)
+
+
+def apply_overrides(config: dict, overrides: list[str]) -> dict:
+    """Hydra's command-line overrides on a baseline config dict, as far as the env line needs
+    them: `KEY=VALUE` and dotted `ENV_KWARGS.key=VALUE`, values read as YAML primitives."""
+    out = copy.deepcopy(config)
+    for item in overrides:
+        dotted, value = item.split("=", 1)
+        *parents, leaf = dotted.lstrip("+").split(".")
+        node = out
+        for key in parents:
+            node = node.setdefault(key, {})
+        node[leaf] = value if ":" in value else yaml.safe_load(value)
+    return out
+
+
+# The env part of JaxMARL's baselines/IPPO/config/ippo_rnn_smax.yaml, as it ships.
+BASELINE_CONFIG = {"ENV_NAME": "HeuristicEnemySMAX", "MAP_NAME": "2s3z",
+                   "ENV_KWARGS": {"see_enemy_actions": True, "walls_cause_death": True,
+                                  "attack_mode": "closest"}}
+
+
+def test_make_env_takes_map_name_and_env_kwargs_from_hydra_style_overrides():
+    config = apply_overrides(BASELINE_CONFIG, [
+        "ENV_NAME=TABX-SMAX", "MAP_NAME=crossfire", "+ENV_KWARGS.opponent=heuristic:expert",
+        "+ENV_KWARGS.max_steps=64", "+ENV_KWARGS.start_noise=2.0"])
+    with pytest.warns(UserWarning, match="attack_mode"):  # SMAX's keys: ignored, said so
+        env = make_env(config["MAP_NAME"], **config["ENV_KWARGS"])  # the baselines' env line
+    assert isinstance(env, TabxJaxMARLEnv) and env.map_name == "crossfire"
+    assert env.config.max_steps == 64 and (env.num_allies, env.num_enemies) == (3, 3)
+    assert float(env.marl.level.start_noise) == 2.0
+    assert env.marl.controllers[1] == Controller.parse("heuristic:expert")
+    with pytest.raises(TypeError, match="unknown keyword arguments.*max_step"):
+        make_env("crossfire", max_step=64)

@@ -11,10 +11,18 @@ import numpy as np
 import pytest
 from flax import struct
 
-from tabx.compat.jaxued import AutoReplayWrapper, TabxUnderspecifiedEnv
+from tabx.compat.jaxued import (
+    AutoReplayState,
+    AutoReplayWrapper,
+    MultiAgentDiscrete,
+    TabxUEDParams,
+    TabxUnderspecifiedEnv,
+    UnderspecifiedEnv,
+)
 from tabx.compile_counter import CompileCounter
 from tabx.params import EnvConfig, stack_levels
 from tabx.random_levels import random_levels
+from tabx.scenarios import ScenarioError, load_levels, load_named
 
 CONFIG = EnvConfig(max_allies=4, max_enemies=4, max_zones=2, max_steps=24)
 POOL_SIZE, NUM_ENVS, NUM_STEPS, CAPACITY = 12, 4, 24, 8
@@ -40,7 +48,12 @@ def take(levels, idx):
 
 def test_the_interface_and_auto_replay(env, pool):
     params = env.default_params
-    assert env.action_space(params).n == 8 and env.num_agents == CONFIG.max_allies
+    assert params == TabxUEDParams(max_steps_in_episode=CONFIG.max_steps,
+                                   num_agents=CONFIG.max_allies)
+    space = env.action_space(params)
+    assert isinstance(space, MultiAgentDiscrete) and space.n == 8
+    assert space.shape == (CONFIG.max_allies,) == (env.num_agents,)
+    assert space.sample(jax.random.key(0)).shape == space.shape
     reset = jax.jit(env.reset_to_level)
     level = take(pool, 1)  # randomised start
     obs, state = reset(jax.random.key(0), level, params)
@@ -146,3 +159,60 @@ def test_a_jaxued_style_dr_plr_loop_runs_on_our_levels_without_recompiling(env, 
     assert counter.compiles == 0, counter.traced
     assert not np.array_equal(np.asarray(other.levels.units.position),
                               np.asarray(buffer.levels.units.position))
+
+
+class JaxuedStyleAutoReplay(UnderspecifiedEnv):
+    """A stand-in with the forwarding of jaxued's own `AutoReplayWrapper`: `default_params`
+    and `action_space` reach the inner env, no other attribute does (no `__getattr__`)."""
+
+    def __init__(self, env):
+        self._env = env
+
+    @property
+    def default_params(self):
+        return self._env.default_params
+
+    def reset_env_to_level(self, rng, level, params):
+        obs, env_state = self._env.reset_to_level(rng, level, params)
+        return obs, AutoReplayState(env_state=env_state, level=level)
+
+    def step_env(self, rng, state, action, params):
+        obs, env_state, reward, done, info = self._env.step(rng, state.env_state, action,
+                                                            params)
+        return obs, state.replace(env_state=env_state), reward, done, info
+
+    def action_space(self, params):
+        return self._env.action_space(params)
+
+
+def test_num_agents_and_the_step_limit_reach_a_loop_through_jaxueds_wrapper(pool):
+    env = JaxuedStyleAutoReplay(TabxUnderspecifiedEnv(CONFIG, team="enemy"))
+    assert not hasattr(env, "num_agents")
+    params = env.default_params
+    assert params.num_agents == env.action_space(params).num_agents == CONFIG.max_enemies
+    # Static: sizes a scan inside jit, as jaxued's evaluation does.
+    lengths = jax.jit(lambda p: jnp.arange(p.max_steps_in_episode))(params)
+    assert lengths.shape == (CONFIG.max_steps,)
+
+
+def test_a_misshaped_action_or_foreign_params_fail_when_traced(pool):
+    inner = TabxUnderspecifiedEnv(CONFIG)
+    params = inner.default_params
+    _, state = jax.eval_shape(inner.reset_to_level, jax.random.key(0), take(pool, 0), params)
+    for bad in (jnp.int32(7), jnp.full((2, CONFIG.max_allies), 7, jnp.int32)):
+        with pytest.raises(ValueError, match="one per learner agent"):
+            jax.eval_shape(inner.step, jax.random.key(1), state, bad, params)
+    other = params.replace(max_steps_in_episode=CONFIG.max_steps + 1)
+    with pytest.raises(ValueError, match="default_params"):
+        jax.eval_shape(inner.reset_to_level, jax.random.key(0), take(pool, 0), other)
+
+
+def test_load_levels_batches_named_scenarios_in_one_config():
+    config, levels = load_levels(["crossfire", "2F1M2Avs2S1K", "ambush"], max_steps=32)
+    assert levels.reward_mode.shape == (3,) and config.max_steps == 32
+    alone = load_named("crossfire")
+    assert config.max_allies >= len(alone.allies) and config.max_enemies >= len(alone.enemies)
+    first = jax.tree.map(lambda x: x[0], levels)
+    assert jax.tree.all(jax.tree.map(jnp.array_equal, first, alone.to_level(config)))
+    with pytest.raises(ScenarioError):
+        load_levels("crossfire")

@@ -19,12 +19,23 @@ unmodified:
 Agents, teams and opponents are those of `tabx.marl.TabxMarlEnv` (which this wraps for its
 levels and controllers): `team="ally"` learns the ally slots against `opponent`.
 
+`make_env(name_or_path, **kwargs)` builds one from a scenario name (or composition, or file)
+and keyword arguments, so a JaxMARL baseline's env line becomes
+`env = make_env(config["MAP_NAME"], **config["ENV_KWARGS"])` and `MAP_NAME=crossfire` /
+`ENV_KWARGS.opponent=heuristic:expert` are hydra overrides. SMAX's own `ENV_KWARGS` keys (as
+the baselines' configs ship them) have no meaning here: they are ignored with a warning.
+
+`infos["won"]` is the battle's outcome: at the end of an episode, a time-out included, the team
+with the higher rounded health ratio wins (ties to the enemy), as in the reference; see
+docs/ecosystem.md for how `SMAXLogWrapper`'s reward-based win count relates to it.
+
 Needs jaxmarl (the `peers` extra); importing this module without it raises ImportError naming
 the extra.
 """
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -43,8 +54,17 @@ from tabx import constants as C
 from tabx.controllers import controlled_actions, with_tiers
 from tabx.env import TabxEnv
 from tabx.marl import TabxMarlEnv
-from tabx.params import EnvConfig, EnvParams
+from tabx.params import EnvConfig, EnvParams, level_config
+from tabx.scenarios import load_named
 from tabx.state import EnvState
+
+# Keyword arguments of JaxMARL's SMAX / HeuristicEnemySMAX that the baselines' configs put in
+# ENV_KWARGS: accepted by `make_env` (so such a config runs) and ignored with a warning.
+SMAX_ONLY_KWARGS = frozenset({
+    "see_enemy_actions", "walls_cause_death", "attack_mode", "enemy_shoots", "scenario",
+    "num_allies", "num_enemies", "map_width", "map_height", "world_steps_per_env_step",
+    "time_per_step", "use_self_play_reward", "won_battle_bonus", "smacv2_position_generation",
+    "smacv2_unit_type_generation", "observation_type", "action_type"})
 
 
 @struct.dataclass
@@ -64,6 +84,7 @@ class TabxJaxMARLEnv(MultiAgentEnv):
                  level_sampler: Callable[[jax.Array], EnvParams] | None = None,
                  team: str = "ally", opponent: str = "heuristic:medium"):
         self.marl = TabxMarlEnv(config, level, level_sampler, team, opponent)
+        self.map_name: str | None = None  # the scenario's name where `make_env` built it
         super().__init__(num_agents=self.marl.num_agents)
         self.config = config
         self.env = TabxEnv(config)
@@ -147,4 +168,34 @@ class TabxJaxMARLEnv(MultiAgentEnv):
                 "enemy": [a for a in self.agents if a.startswith("enemy")]}
 
 
-__all__ = ["TabxJaxMARLEnv", "TabxJaxMARLState"]
+def make_env(name_or_path: str, opponent: str = "heuristic:medium",
+             max_steps: int = C.DEFAULT_MAX_STEPS, team: str = "ally",
+             start_noise: float | None = None, shuffle_positions: bool | None = None,
+             **smax_kwargs: Any) -> TabxJaxMARLEnv:
+    """A `TabxJaxMARLEnv` on one scenario (`load_named`: a name, a composition `UNITS_ZONES`
+    or a file path), its config the tightest for the scenario with `max_steps`.
+
+    `start_noise` (world units) and `shuffle_positions`, where given, replace the scenario's
+    own randomised-start settings (docs/environment.md). Keys of SMAX's own ENV_KWARGS
+    (`SMAX_ONLY_KWARGS`) are ignored with a warning; any other key is a TypeError naming the
+    accepted ones."""
+    unknown = sorted(set(smax_kwargs) - SMAX_ONLY_KWARGS)
+    if unknown:
+        raise TypeError(f"make_env got unknown keyword arguments {unknown}; it takes opponent, "
+                        "max_steps, team, start_noise, shuffle_positions (and ignores SMAX's "
+                        f"{sorted(SMAX_ONLY_KWARGS)})")
+    if smax_kwargs:
+        warnings.warn(f"make_env ignores SMAX-only keyword arguments {sorted(smax_kwargs)}: "
+                      "TABX has no counterpart for them", stacklevel=2)
+    level = load_named(name_or_path).to_level()
+    if start_noise is not None:
+        level = level.replace(start_noise=jnp.float32(start_noise))
+    if shuffle_positions is not None:
+        level = level.replace(shuffle_positions=jnp.bool_(shuffle_positions))
+    env = TabxJaxMARLEnv(level_config(level, max_steps=int(max_steps)), level, team=team,
+                         opponent=opponent)
+    env.map_name = name_or_path
+    return env
+
+
+__all__ = ["SMAX_ONLY_KWARGS", "TabxJaxMARLEnv", "TabxJaxMARLState", "make_env"]

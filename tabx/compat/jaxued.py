@@ -8,12 +8,17 @@ jaxued (github.com/DramaCow/jaxued) drives an environment through a level it is 
 
 and its example loops wrap it in `AutoReplayWrapper`, which restarts a finished episode in the
 same level. Here a level is our `EnvParams` (one `EnvConfig` for all of them, so new levels
-never recompile), `params` is `TabxUEDParams` (nothing a level varies; accepted and ignored as
-in jaxued's own environments), and the learner is one team of units playing the other team's
-controller, as in `tabx.marl`:
+never recompile; `tabx.scenarios.load_levels` loads named scenarios as one batch), and the
+learner is one team of units playing the other team's controller, as in `tabx.marl`:
 
-- `action`: int array `(num_agents,)`, one action per learner unit slot (`action_space(params)`
-  is one agent's: `Discrete(8)`);
+- `params`: `TabxUEDParams`, the compiled-in numbers a loop reads (`max_steps_in_episode`,
+  `num_agents`; static, so `jax.lax.scan(..., length=params.max_steps_in_episode)` works).
+  Everything a level varies is in the level. jaxued's own wrappers forward `default_params`
+  and `action_space(params)` (nothing else), so both carry `num_agents`;
+- `action`: int array `(num_agents,)`, one action per learner unit slot.
+  `action_space(params)` says so: a `MultiAgentDiscrete` whose `n` (8) is one agent's choices,
+  the size of a policy's output head, and whose `shape` is `(num_agents,)`; `step` raises a
+  ValueError, when it is traced, for an action of any other shape;
 - `obs`: `(num_agents, obs_size)`; `reward`: the learner team's (a scalar); `done`: the
   episode's end; `info`: `won`, `terminated`, `truncated`, `dead_units` and `legal_actions`
   (`(num_agents, 8)`, for masked policies).
@@ -26,6 +31,7 @@ and `wrappers/autoreplay.py` (docs/ecosystem.md).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import jax
@@ -44,8 +50,35 @@ LEARNER_TEAMS = ("ally", "enemy")
 
 @struct.dataclass
 class TabxUEDParams:
-    """jaxued's per-environment `params`: nothing here, since every setting of a battle is
-    level data (`EnvParams`) or compiled in (`EnvConfig`)."""
+    """jaxued's per-environment `params`: what a loop reads of the compiled-in `EnvConfig`.
+
+    Both are static (not traced), so they size scans and arrays inside `jit`. Every other
+    setting of a battle is level data (`EnvParams`)."""
+
+    max_steps_in_episode: int = struct.field(pytree_node=False)
+    num_agents: int = struct.field(pytree_node=False)
+
+
+@dataclass(frozen=True)
+class MultiAgentDiscrete(Discrete):
+    """The actions of one env step: `num_agents` choices of `n` values each.
+
+    `n` is one agent's number of actions (what jaxued's examples size a policy head with);
+    `shape`, `sample` and `contains` are the whole step's `(num_agents,)`."""
+
+    num_agents: int = 1
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return (self.num_agents,)
+
+    def sample(self, key: jax.Array) -> jax.Array:
+        return jax.random.randint(key, self.shape, 0, self.n, dtype=self.dtype)
+
+    def contains(self, x: jax.Array) -> jax.Array:
+        if jnp.shape(x) != self.shape:
+            return jnp.bool_(False)
+        return jnp.all((x >= 0) & (x < self.n))
 
 
 @struct.dataclass
@@ -62,7 +95,7 @@ class UnderspecifiedEnv:
 
     @property
     def default_params(self) -> TabxUEDParams:
-        return TabxUEDParams()
+        raise NotImplementedError
 
     def reset_to_level(self, rng: jax.Array, level: EnvParams,
                        params: TabxUEDParams | None = None) -> tuple[jax.Array, Any]:
@@ -103,10 +136,21 @@ class TabxUnderspecifiedEnv(UnderspecifiedEnv):
         first = 0 if team == "ally" else config.max_allies
         self.agent_slots = jnp.arange(first, first + self.num_agents)
 
+    @property
+    def default_params(self) -> TabxUEDParams:
+        return TabxUEDParams(max_steps_in_episode=self.config.max_steps,
+                             num_agents=self.num_agents)
+
+    def _check(self, params: TabxUEDParams) -> None:
+        """Params of another env (other step limit or team size) are an error, not ignored."""
+        if params != self.default_params:
+            raise ValueError(f"params {params} are not this env's ({self.default_params}); "
+                             "use env.default_params")
+
     def reset_env_to_level(self, rng: jax.Array, level: EnvParams, params: TabxUEDParams
                            ) -> tuple[jax.Array, TabxUEDState]:
         """A new episode in `level`, its randomised start (if any) drawn from `rng`."""
-        del params
+        self._check(params)
         level = with_tiers(level, self.controllers)
         env_state = self.env.start_state(rng, level)
         state = TabxUEDState(env_state=env_state, level=level)
@@ -117,7 +161,12 @@ class TabxUnderspecifiedEnv(UnderspecifiedEnv):
                                                  jax.Array, Info]:
         """One step: the learner's units take `action` (num_agents,), the other team its
         controller's. No reset (a finished episode stays frozen): `AutoReplayWrapper` adds it."""
-        del params
+        self._check(params)
+        if jnp.shape(action) != (self.num_agents,):
+            raise ValueError(
+                f"an action is one per learner agent, shape ({self.num_agents},); got shape "
+                f"{jnp.shape(action)} (vmap step over envs; action_space(params).n is one "
+                "agent's choices)")
         key_other, key_step = jax.random.split(rng)
         external = jnp.full((self.config.num_units,), C.IDLE, jnp.int32)
         external = external.at[self.agent_slots].set(jnp.asarray(action, jnp.int32))
@@ -138,9 +187,9 @@ class TabxUnderspecifiedEnv(UnderspecifiedEnv):
         """(num_agents, 8) bool."""
         return self.env.action_mask(state.env_state, state.level)[self.agent_slots]
 
-    def action_space(self, params: TabxUEDParams | None = None) -> Discrete:
-        """One agent's actions (an action of the env is one per agent)."""
-        return Discrete(C.NUM_ACTIONS)
+    def action_space(self, params: TabxUEDParams | None = None) -> MultiAgentDiscrete:
+        """One step's actions: `(num_agents,)`, each one of `n` = 8."""
+        return MultiAgentDiscrete(C.NUM_ACTIONS, num_agents=self.num_agents)
 
     def observation_space(self, params: TabxUEDParams | None = None) -> Box:
         return Box(-jnp.inf, jnp.inf, (self.num_agents, self.config.obs_size))
@@ -185,9 +234,9 @@ class AutoReplayWrapper(UnderspecifiedEnv):
         return (pick(obs_re, obs), state.replace(env_state=pick(env_state_re, env_state)),
                 reward, done, info)
 
-    def action_space(self, params: TabxUEDParams | None = None) -> Discrete:
+    def action_space(self, params: TabxUEDParams | None = None) -> MultiAgentDiscrete:
         return self._env.action_space(params)
 
 
-__all__ = ["AutoReplayState", "AutoReplayWrapper", "TabxUEDParams", "TabxUEDState",
-           "TabxUnderspecifiedEnv", "UnderspecifiedEnv"]
+__all__ = ["AutoReplayState", "AutoReplayWrapper", "MultiAgentDiscrete", "TabxUEDParams",
+           "TabxUEDState", "TabxUnderspecifiedEnv", "UnderspecifiedEnv"]

@@ -31,6 +31,7 @@ from tabx.scenarios.registry import (
     list_scenarios,
     load_all,
     load_file,
+    load_levels,
     load_named,
     user_scenario_dir,
 )
@@ -39,7 +40,7 @@ __all__ = [
     "ARENA_RANGE", "CATEGORIES", "FORMAT", "HEURISTIC_RANGES", "PHYSICS_RANGES",
     "UNIT_OVERRIDE_FIELDS", "UNIT_STAT_RANGES", "ZONE_EFFECT_RANGES", "Range", "Scenario",
     "ScenarioError", "Unit", "Zone", "compose", "config_for", "dumps_scenario",
-    "level_to_scenario", "list_scenarios", "load_all", "load_file", "load_named",
+    "level_to_scenario", "list_scenarios", "load_all", "load_file", "load_levels", "load_named",
     "load_scenario", "read_reference_scenario", "reference_to_scenario", "save_scenario",
     "user_scenario_dir",
 ]

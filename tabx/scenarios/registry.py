@@ -18,10 +18,13 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from tabx import constants as C
+from tabx import params as P
 from tabx.scenarios.format import (
     CATEGORIES,
     Scenario,
     ScenarioError,
+    config_for,
     parse_json,
     read_json,
 )
@@ -200,3 +203,17 @@ def _unknown(name: str, what: str = "scenario") -> ScenarioError:
 def load_all(category: str | None = None) -> dict[str, Scenario]:
     """name -> Scenario for every listed scenario of a category (bundled and user)."""
     return {n: load_named(n) for n in list_scenarios(category)}
+
+
+def load_levels(names: Any, max_steps: int = C.DEFAULT_MAX_STEPS
+                ) -> tuple[P.EnvConfig, P.EnvParams]:
+    """Named scenarios (names, compositions or paths, as `load_named` takes them) as one batch
+    of levels: `(config, levels)`, `config` the smallest `EnvConfig` that fits them all and
+    every leaf of `levels` with a leading axis of `len(names)`, in the order given."""
+    if isinstance(names, str):
+        raise ScenarioError(f"expected a sequence of scenario names, got the string {names!r}")
+    scenarios = [load_named(name) for name in names]
+    if not scenarios:
+        raise ScenarioError("load_levels needs at least one scenario name")
+    config = config_for(scenarios, max_steps=max_steps)
+    return config, P.stack_levels([s.to_level(config) for s in scenarios])
