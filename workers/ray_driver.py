@@ -126,19 +126,40 @@ def connect(section: RaySection) -> tuple[Any, bool]:
     return ray, True
 
 
+# What a gRPC server (a Ray head's GCS) answers first to a client's HTTP/2 connection preface:
+# a SETTINGS frame (9-byte frame header, type 0x4). A web server or anything else answers
+# otherwise, or not at all; Ray itself would retry such an address for many minutes.
+_HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
+_SETTINGS_FRAME = 4
+
+
 def check_reachable(address: str, timeout_s: float = 5.0) -> None:
-    """Fail fast where no head answers at HOST:PORT (Ray itself retries for minutes)."""
+    """Fail fast, in one line, where no Ray head answers at HOST:PORT: nothing listens, or
+    something that is not a gRPC server (a Ray head's GCS speaks gRPC)."""
     if address in ("auto", "local") or "://" in address:
         return
     host, sep, port = address.rpartition(":")
     if not sep or not port.isdigit():
         raise ConfigError(f"ray.address: expected 'auto' or HOST:PORT, got {address!r}")
     try:
-        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+        with socket.create_connection((host, int(port)), timeout=timeout_s) as sock:
+            sock.sendall(_HTTP2_PREFACE)
+            answer = b""
+            while len(answer) < 9:
+                chunk = sock.recv(9 - len(answer))
+                if not chunk:
+                    break
+                answer += chunk
     except OSError as err:
-        raise ConfigError(f"ray.address: no Ray head answers at {address} ({err.strerror or err}"
-                          f"); start one there (ray start --head --port={port}) or give "
-                          f"another address") from None
+        if not isinstance(err, TimeoutError) and not isinstance(err, socket.timeout):
+            raise ConfigError(f"ray.address: no Ray head answers at {address} "
+                              f"({err.strerror or err}); start one there (ray start --head "
+                              f"--port={port}) or give another address") from None
+        answer = b""
+    if len(answer) < 9 or answer[3] != _SETTINGS_FRAME:
+        raise ConfigError(f"ray.address: {address} is not a Ray head (something listens there "
+                          f"but does not speak Ray's gRPC); give the head's GCS address "
+                          f"(ray start --head prints it)") from None
 
 
 def actor_env(gpu: bool) -> dict[str, str]:
