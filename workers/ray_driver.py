@@ -90,22 +90,31 @@ def import_ray() -> Any:
     return ray
 
 
-def connect(section: RaySection) -> tuple[Any, bool]:
-    """Ray, connected: to `section.address` if set, else a Ray started here. Returns (ray,
-    whether this call started the connection, so the caller shuts it down)."""
+def join_address(section: RaySection) -> str:
+    """The cluster a run joins: `ray.address`, else `RAY_ADDRESS` as Ray's own tools read it
+    (a `ray job submit` entrypoint has it), else "": a Ray of the run's own on this machine."""
+    return section.address or os.environ.get("RAY_ADDRESS", "")
+
+
+def connect(section: RaySection, num_cpus: int | None = None) -> tuple[Any, bool]:
+    """Ray, connected: to `join_address(section)` if any, else a Ray started here (with
+    `num_cpus`, default `section.num_cpus`). Returns (ray, whether this call started the
+    connection, so the caller shuts it down)."""
     ray = import_ray()
     if ray.is_initialized():
         return ray, False
     kwargs: dict[str, Any] = {"logging_level": "WARNING", "log_to_driver": True}
-    if section.address:
-        check_reachable(section.address)
-        kwargs["address"] = section.address
+    address = join_address(section)
+    if address:
+        check_reachable(address)
+        kwargs["address"] = address
     else:
         # "local": a new Ray, even where `ray start` left a cluster that ray.init would join.
         kwargs["address"] = "local"
         kwargs["include_dashboard"] = False
-        if section.num_cpus:
-            kwargs["num_cpus"] = section.num_cpus
+        cpus = num_cpus if num_cpus is not None else section.num_cpus
+        if cpus:
+            kwargs["num_cpus"] = cpus
         kwargs["object_store_memory"] = section.object_store_mb * 2**20
         # A Ray of our own keeps Ray's default token authentication; its notice about that
         # default is noise on every run.
@@ -121,7 +130,7 @@ def connect(section: RaySection) -> tuple[Any, bool]:
         hint = ("" if os.environ.get("RAY_AUTH_MODE") else
                 "; a cluster started with `ray start` checks a token: set RAY_AUTH_MODE=token "
                 "and give this machine its ~/.ray/auth_token")
-        raise ConfigError(f"ray.address: cannot join the cluster at {section.address!r} "
+        raise ConfigError(f"ray.address: cannot join the cluster at {address!r} "
                           f"({err}){hint}") from None
     return ray, True
 
@@ -183,6 +192,121 @@ def learner_gpus(ray: Any, section: RaySection) -> float:
     return 1.0 if ray.cluster_resources().get("GPU", 0) >= 1 else 0.0
 
 
+MIN_EXPLORER_CPUS = 0.25  # below this share an Explorer only waits for its turn
+
+
+@dataclass(frozen=True)
+class LocalPlan:
+    """A Ray started on this machine: its CPUs, the learner's GPUs, each Explorer's CPUs, and
+    a line saying what was chosen ("" where every actor has a CPU of its own)."""
+
+    cpus: int
+    gpus: float
+    explorer_cpus: float
+    note: str
+
+
+def local_resources() -> tuple[int, int]:
+    """(CPUs, GPUs) a Ray started here would find, without starting it."""
+    import_ray()
+    from ray._private.accelerators import NvidiaGPUAcceleratorManager
+    from ray._private.utils import get_num_cpus
+
+    try:
+        gpus = int(NvidiaGPUAcceleratorManager.get_current_node_num_accelerators())
+    except Exception:  # no driver, no nvidia-smi: no GPU Ray could use
+        gpus = 0
+    return int(get_num_cpus()), gpus
+
+
+def local_plan(section: RaySection, cpus: int, gpus_here: int) -> LocalPlan:
+    """How the run's actors fit a Ray started on a machine of `cpus` CPUs and `gpus_here`
+    GPUs, decided before anything starts: Explorers short of a CPU each share what the
+    learner leaves (they wait on the learner's policy much of the time); a run that cannot
+    fit at all is refused."""
+    gpus = (float(section.learner_gpus) if section.learner_gpus >= 0
+            else 1.0 if gpus_here >= 1 else 0.0)
+    if gpus * section.learners > gpus_here:
+        raise ConfigError(f"ray.learner_gpus: the learner asks for {gpus * section.learners:g} "
+                          f"GPU but this machine has {gpus_here}; set ray.learner_gpus=-1 "
+                          f"(auto) or 0, or join a cluster that has one (--address)")
+    cpus = section.num_cpus or cpus
+    learner = "GPU" if gpus else "CPU"
+    left = cpus - (0 if gpus else section.learners)
+    n = section.explorers
+    if n == 0 or left >= n:
+        return LocalPlan(cpus, gpus, 1.0, "")
+    share = int(100 * left / n) / 100  # Ray keeps 4 decimals; 2 read better
+    if share < MIN_EXPLORER_CPUS:
+        raise ConfigError(f"ray.explorers: {n} Explorers and a {learner} learner do not fit a "
+                          f"Ray of {cpus} CPUs (each Explorer would have {share:g} CPU, under "
+                          f"{MIN_EXPLORER_CPUS:g}); lower ray.explorers or raise ray.num_cpus "
+                          f"(logical CPUs may exceed the cores)")
+    return LocalPlan(cpus, gpus, share,
+                     f"ray: a Ray of {cpus} CPUs on this machine: {n} Explorers share {left:g} "
+                     f"CPU ({share:g} each) beside the {learner} learner; "
+                     f"ray.num_cpus={n + cpus - left} gives each a CPU of its own")
+
+
+def requests(section: RaySection, gpus: float, explorer_cpus: float) -> dict[str, dict]:
+    """Actor name -> the resources it reserves (the service and evaluator reserve none)."""
+    out: dict[str, dict] = {("learner" if i == 0 else f"learner-{i}"):
+                            {"GPU": gpus} if gpus else {"CPU": 1.0}
+                            for i in range(section.learners)}
+    for i in range(section.explorers):
+        out[f"explorer-{i}"] = {"CPU": explorer_cpus}
+    return out
+
+
+def wait_for_resources(ray: Any, needs: dict[str, dict], timeout_s: float, stream: TextIO,
+                       poll_s: float = 1.0) -> None:
+    """Wait until the cluster holds, in all, what the actors reserve (an autoscaler may add
+    nodes), at most `timeout_s`; then fail in one line naming the missing resource and who
+    asks for it (Ray would keep the actors pending for ever)."""
+    total: Counter = Counter()
+    for need in needs.values():
+        total.update(need)
+    t0 = time.monotonic()
+    said = False
+    while True:
+        have = ray.cluster_resources()
+        missing = {k: v for k, v in total.items() if have.get(k, 0) + 1e-9 < v}
+        if not missing:
+            return
+        waited = time.monotonic() - t0
+        resource, need = next(iter(missing.items()))
+        askers = ", ".join(f"{name} {n[resource]:g}" for name, n in needs.items()
+                           if n.get(resource))
+        if waited >= timeout_s:
+            raise ConfigError(f"ray.placement_timeout_s: after {waited:.0f} s the cluster has "
+                              f"{have.get(resource, 0):g} {resource} of the {need:g} the run "
+                              f"reserves ({askers}); add nodes with {resource}, or ask for "
+                              f"less (ray.learner_gpus, ray.explorers)")
+        if not said:
+            stream.write(f"ray: waiting up to {timeout_s:g} s for {need:g} {resource} "
+                         f"({askers}); the cluster has {have.get(resource, 0):g}\n")
+            stream.flush()
+            said = True
+        time.sleep(min(poll_s, max(timeout_s - waited, 0.01)))
+
+
+def explorer_selector(ray: Any, gpus: float, allow_gpu_nodes: bool,
+                      stream: TextIO) -> dict[str, str] | None:
+    """Where a GPU learner's Explorers may go: any node but the GPU nodes (a label selector),
+    while the cluster has a CPU-only node; None: anywhere (a CPU learner, asked for, or only
+    GPU nodes, which is then said)."""
+    if not gpus or allow_gpu_nodes:
+        return None
+    nodes = [n for n in ray.nodes() if n.get("Alive")]
+    gpu_nodes = [n["NodeID"] for n in nodes if n["Resources"].get("GPU", 0) > 0]
+    if not any(n["Resources"].get("CPU", 0) > 0 and n["NodeID"] not in gpu_nodes
+               for n in nodes):
+        stream.write("ray: no CPU-only node: the Explorers share the GPU node(s) with the "
+                     "learner\n")
+        return None
+    return {"ray.io/node-id": f"!in({','.join(gpu_nodes)})"}
+
+
 @dataclass
 class Workers:
     """The actor handles of one run."""
@@ -224,15 +348,21 @@ class Workers:
 
 
 def start_workers(ray: Any, config: TrainConfig, stream: TextIO,
-                  run_name: str | None = None, levels_dir: Path | None = None) -> Workers:
+                  run_name: str | None = None, levels_dir: Path | None = None,
+                  explorer_cpus: float | None = None) -> Workers:
     """The run's actors, constructed (their constructors build each one's part of the run).
     With `run_name` they are named actors, `RUN_NAME/ROLE` in `RAY_NAMESPACE`, so that another
     process (`tabx runs buffer`) can reach them. With `levels_dir` the service logs its
-    commits there (and may restart: it replays them)."""
+    commits there (and may restart: it replays them). `explorer_cpus`: each Explorer's CPUs
+    as `local_plan` chose them for a Ray started here (None: one, checked here)."""
     section = config.ray
     gpus = learner_gpus(ray, section)
-    if not section.address:
+    if explorer_cpus is None and not join_address(section):
         check_resources(ray, config, gpus)
+    explorer_cpus = 1.0 if explorer_cpus is None else explorer_cpus
+    wait_for_resources(ray, requests(section, gpus, explorer_cpus),
+                       section.placement_timeout_s, stream)
+    selector = explorer_selector(ray, gpus, section.explorers_on_gpu_nodes, stream)
 
     def spawn(cls: type, name: str, *args: Any, num_gpus: float = 0.0, restarts: int = 0,
               **options: Any) -> Any:
@@ -271,8 +401,10 @@ def start_workers(ray: Any, config: TrainConfig, stream: TextIO,
                         num_cpus=1 if not gpus else 0,
                         **({} if gpus else {"scheduling_strategy": NodeAffinitySchedulingStrategy(
                             driver_node, soft=True)}))
-    explorers = [spawn(ExplorerActor, f"explorer-{i}", config, num_cpus=1,
-                       scheduling_strategy="SPREAD", restarts=restarts)
+    # Off a GPU learner's nodes unless asked (`explorer_selector`).
+    placement: dict[str, Any] = ({"label_selector": selector} if selector else {})
+    explorers = [spawn(ExplorerActor, f"explorer-{i}", config, num_cpus=explorer_cpus,
+                       scheduling_strategy="SPREAD", restarts=restarts, **placement)
                  for i in range(section.explorers)]
     evaluator = (spawn(EvaluatorActor, "evaluator", config, num_cpus=0, restarts=restarts)
                  if config.ued.eval_suites else None)
@@ -760,10 +892,14 @@ class RayDriver(Driver):
         self.schedules = dict(schedules or {})
 
     def check(self, config: TrainConfig) -> None:
+        """Every refusal that needs no Ray: made before the run folder exists."""
         need_ued(config)
-        import_ray()
-        if config.ray.address:
-            check_reachable(config.ray.address)
+        ray = import_ray()
+        address = join_address(config.ray)
+        if address:
+            check_reachable(address)
+        elif not ray.is_initialized():
+            local_plan(config.ray, *local_resources())
 
     def run(self, config: TrainConfig, run_dir: Path, *, resume: bool = False,
             max_updates: int | None = None, progress: bool = True,
@@ -792,12 +928,19 @@ class RayDriver(Driver):
                 max_updates: int | None, progress: bool, stream: TextIO,
                 callback: Callback | None, restarts: Restarts) -> Path:
         """One start of the run's actors and `train_loop` over them."""
-        ray, started = connect(config.ray)
+        ray = import_ray()
+        plan = (None if join_address(config.ray) or ray.is_initialized()
+                else local_plan(config.ray, *local_resources()))
+        if plan is not None and plan.note:
+            stream.write(plan.note + "\n")
+            stream.flush()
+        ray, started = connect(config.ray, None if plan is None else plan.cpus)
         workers = None
         record = RunRecord(run_dir / RAY_RECORD)
         run_name = f"{run_dir.name}-{uuid.uuid4().hex[:8]}"
         try:
-            workers = start_workers(ray, config, stream, run_name, run_dir / LEVELS_DIR)
+            workers = start_workers(ray, config, stream, run_name, run_dir / LEVELS_DIR,
+                                    None if plan is None else plan.explorer_cpus)
             record.update(status="running", driver_pid=os.getpid(),
                           address=ray.get_runtime_context().gcs_address,
                           namespace=RAY_NAMESPACE,
