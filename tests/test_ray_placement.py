@@ -7,6 +7,9 @@ GPU learner is in tests/test_ray_driver.py."""
 from __future__ import annotations
 
 import io
+import os
+import subprocess
+import sys
 import time
 
 import pytest
@@ -98,3 +101,20 @@ def test_ray_address_is_joined_where_no_address_is_given(monkeypatch):
     assert join_address(RaySection(enabled=True, address="auto")) == "auto"
     monkeypatch.delenv("RAY_ADDRESS")
     assert join_address(RaySection(enabled=True)) == ""
+
+
+def test_the_driver_process_keeps_jax_off_accelerators(tmp_path):
+    # `tabx train --ray` on a GPU head: the driver's JAX is CPU-only before it starts (here a
+    # run refused up front: the setting is made first, whatever follows).
+    config_file = tmp_path / "tiny.yaml"
+    config_file.write_text(ued_config("dr").to_yaml())
+    code = ("import sys, jax; from tabx_ued.cli import main; "
+            f"rc = main(['train', {str(config_file)!r}, '--ray', 'ray.explorers=99', "
+            f"'--run-dir', {str(tmp_path / 'never')!r}]); "
+            "assert rc == 2, rc; assert jax.config.jax_platforms == 'cpu', "
+            "jax.config.jax_platforms; print(jax.devices()[0].platform)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120, env={**os.environ, "JAX_PLATFORMS": ""})
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip() == "cpu"
+    assert not (tmp_path / "never").exists()

@@ -90,6 +90,19 @@ def import_ray() -> Any:
     return ray
 
 
+def keep_driver_off_accelerators() -> bool:
+    """JAX on the CPU in the driver process, set before JAX starts its backends: the driver
+    splits keys and moves small host arrays, and on a GPU head it must take none of the GPU
+    memory the learner needs. False where the backends had started already (a caller that
+    ran JAX first, such as a test session): then nothing changes."""
+    from jax._src import xla_bridge
+
+    if xla_bridge.backends_are_initialized():
+        return False
+    jax.config.update("jax_platforms", "cpu")
+    return True
+
+
 def join_address(section: RaySection) -> str:
     """The cluster a run joins: `ray.address`, else `RAY_ADDRESS` as Ray's own tools read it
     (a `ray job submit` entrypoint has it), else "": a Ray of the run's own on this machine."""
@@ -893,6 +906,7 @@ class RayDriver(Driver):
 
     def check(self, config: TrainConfig) -> None:
         """Every refusal that needs no Ray: made before the run folder exists."""
+        keep_driver_off_accelerators()
         need_ued(config)
         ray = import_ray()
         address = join_address(config.ray)
@@ -908,6 +922,7 @@ class RayDriver(Driver):
         learner above all: Ray restarts the others in place) up to `ray.learner_restarts`
         times (`workers.learner_group.Restarts`)."""
         need_ued(config)
+        keep_driver_off_accelerators()
         stream = sys.stderr if stream is None else stream
         restarts = Restarts(config.ray.learner_restarts)
         while True:

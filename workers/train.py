@@ -67,9 +67,10 @@ def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = Non
                   f"updates); nothing to resume\n")
         return Path(run_dir)
     driver = driver if driver is not None else driver_for(config)
-    check_devices(config)  # before a new run's folder exists, as are the scenarios read
+    driver.check(config)  # first: the Ray driver keeps JAX off accelerators before it starts
+    if not config.ray.enabled:  # a Ray run's learner checks its devices on its own node
+        check_devices(config)  # before a new run's folder exists, as are the scenarios read
     scenario_levels(config)
-    driver.check(config)
     if not resume:
         run_dir = create_run_dir(config, run_dir)
     assert run_dir is not None
