@@ -1141,6 +1141,8 @@ class RayRunner(Runner):
             self.asynchronous.log_evaluations(output.writer, output.notes)
 
     def checkpoint(self, done: int, run_dir: Path) -> tuple[Any, int]:
+        if self.asynchronous is not None:  # a snapshot holds every issued batch's result
+            self.asynchronous.drain()  # (done already at a due checkpoint; one after Ctrl-C)
         self.run.save(run_dir, done, self.learner)
         return self.learner.train_state, self.learner.version
 
