@@ -180,6 +180,28 @@ def test_a_learner_gpu_on_a_cpu_only_ray_fails_after_the_placement_timeout(tmp_p
     assert time.perf_counter() - t0 < 15
 
 
+def test_live_explorers_are_the_ones_answering():
+    from workers.actor_manager import ActorManager
+    from workers.ray_driver import live_actors
+
+    @ray.remote(num_cpus=0)
+    class Stub:
+        def ready(self):
+            return True
+
+    actors = ActorManager(ray)
+    stubs = [Stub.remote() for _ in range(2)]
+    ray.get([s.ready.remote() for s in stubs])
+    for i, stub in enumerate(stubs):
+        actors.add(f"explorer-{i}", stub, restarts=True)
+    assert live_actors(ray, actors, ["explorer-0", "explorer-1"]) == 2
+    ray.kill(stubs[1])
+    deadline = time.perf_counter() + 10
+    while live_actors(ray, actors, ["explorer-0", "explorer-1"]) != 1:
+        assert time.perf_counter() < deadline, "a killed actor still counted live"
+        time.sleep(0.1)
+
+
 def test_the_local_mode_never_imports_ray():
     code = ("import sys; import workers.train, tabx_ued.cli; "
             "assert 'ray' not in sys.modules, 'ray imported'")

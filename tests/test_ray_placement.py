@@ -18,6 +18,7 @@ from test_ued_train import ued_config
 from ued.config import ConfigError, RaySection
 from workers import ray_driver
 from workers.ray_driver import (
+    RateWindow,
     explorer_selector,
     join_address,
     local_plan,
@@ -118,3 +119,14 @@ def test_the_driver_process_keeps_jax_off_accelerators(tmp_path):
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip() == "cpu"
     assert not (tmp_path / "never").exists()
+
+
+def test_rates_are_averaged_over_a_stated_window():
+    now = [0.0]
+    window = RateWindow(window_s=10.0, clock=lambda: now[0], start=(0,))
+    now[0] = 1.0
+    assert window.add(15_000) == (15_000.0,)  # one burst: all it has
+    for t in range(2, 31):
+        now[0] = float(t)
+        (rate,) = window.add(15_000 + 500 * (t - 1))
+    assert rate == pytest.approx(500.0) and window.span_s == pytest.approx(10.0, abs=1)

@@ -595,6 +595,56 @@ class Evaluation:
     call: Call
 
 
+RATE_WINDOW_S = 60.0  # rates in ray.json, `tabx runs status` and ray/*_per_s: over this window
+
+
+class RateWindow:
+    """Rates of running counts averaged over the last `window_s` seconds (the whole session
+    while it is younger): the rate a run holds, not one step's burst."""
+
+    def __init__(self, window_s: float = RATE_WINDOW_S,
+                 clock: Callable[[], float] = time.perf_counter, start: tuple = ()):
+        self.window_s, self.clock = window_s, clock
+        self.samples: deque[tuple[float, tuple[float, ...]]] = deque()
+        if start:
+            self.samples.append((clock(), tuple(start)))
+
+    def add(self, *counts: float) -> tuple[float, ...]:
+        """Record `counts` now; their rates per second over the window (0 until there are two
+        readings)."""
+        now = self.clock()
+        self.samples.append((now, counts))
+        while len(self.samples) > 2 and self.samples[1][0] <= now - self.window_s:
+            self.samples.popleft()
+        t0, base = self.samples[0]
+        span = now - t0
+        return tuple((c - b) / span if span > 0 else 0.0 for c, b in zip(counts, base,
+                                                                         strict=True))
+
+    @property
+    def span_s(self) -> float:
+        """Seconds the last rates were averaged over."""
+        return self.samples[-1][0] - self.samples[0][0] if self.samples else 0.0
+
+
+def live_actors(ray: Any, actors: ActorManager, names: list[str]) -> int:
+    """Of `names`, the actors answering: not given up by the ActorManager and alive in Ray's
+    actor table (one dead or restarting is not)."""
+    from ray._private import state
+
+    live = 0
+    for name in names:
+        if not actors.available(name):
+            continue
+        actor_id = actors.members[name].actor_id()
+        try:
+            info = state.actors(actor_id=actor_id) if actor_id else {}
+        except Exception:  # the table unreadable: count on the manager's word
+            info = {"State": "ALIVE"}
+        live += info.get("State") == "ALIVE"
+    return live
+
+
 @dataclass
 class RayStats:
     """What the progress line and `ray/*` scalars report."""
@@ -610,12 +660,17 @@ class RayStats:
     learner_busy_s: float = 0.0
     wait_for_levels_s: float = 0.0
     t0: float = field(default_factory=time.perf_counter)
+    window: RateWindow = field(default_factory=lambda: RateWindow(start=(0, 0)))
+    rates: tuple[float, ...] = (0.0, 0.0)  # trained, explored env steps/s over the window
 
     def scalars(self, live_explorers: int, inflight: int) -> dict[str, float]:
+        """The `ray/*` scalars of a logged step (reads the rates: once per logged step)."""
         elapsed = max(time.perf_counter() - self.t0, 1e-9)
+        self.rates = self.window.add(self.trained_steps, self.explored_steps)
         lags = list(self.staleness.elements())
-        out = {"ray/trained_steps_per_s": self.trained_steps / elapsed,
-               "ray/explored_steps_per_s": self.explored_steps / elapsed,
+        out = {"ray/trained_steps_per_s": self.rates[0],
+               "ray/explored_steps_per_s": self.rates[1],
+               "ray/rate_window_s": self.window.span_s,
                "ray/live_explorers": float(live_explorers),
                "ray/inflight_batches": float(inflight),
                "ray/committed_batches": float(self.committed),
@@ -629,11 +684,11 @@ class RayStats:
         return out
 
     def text(self, live_explorers: int, buffer_size: int | None) -> str:
-        elapsed = max(time.perf_counter() - self.t0, 1e-9)
+        """The progress line's part (after `scalars`: its rates)."""
         lags = list(self.staleness.elements())
-        parts = [f"trained {self.trained_steps / elapsed:,.0f}/s",
-                 f"explored {self.explored_steps / elapsed:,.0f}/s",
-                 f"explorers {live_explorers}"]
+        parts = [f"trained {self.rates[0]:,.0f}/s",
+                 f"explored {self.rates[1]:,.0f}/s over {self.window.span_s:.0f} s",
+                 f"explorers {live_explorers} live"]
         if buffer_size is not None:
             parts.append(f"buffer {buffer_size}")
         if lags:
@@ -1017,6 +1072,9 @@ class RayRunner(Runner):
         self.chaos: Chaos | None = None
         self._asked: tuple[Call, Call] | None = None  # the service's statistics, asked for
         self.reached = 0  # steps done (a restart after a loss counts those since the checkpoint)
+        self.rate = RateWindow()  # env steps/s in ray.json, over RATE_WINDOW_S
+        self.learner_first_s: float | None = None  # the learner's first update, compile included
+        self.first_said = False
 
     @property
     def eval_every(self) -> int:
@@ -1038,6 +1096,7 @@ class RayRunner(Runner):
     def begin(self, start: int) -> None:
         ray, workers, config = self.ray, self.workers, self.config
         self.start = self.reached = start
+        self.rate = RateWindow(start=(start * config.learner.steps_per_update,))
         self.learner = RemoteLearner(ray, workers.learner, self.version, self.actors)
         placement = workers.placement(ray)
         group = workers.learner if isinstance(workers.learner, LearnerGroup) else None
@@ -1081,6 +1140,7 @@ class RayRunner(Runner):
 
     def step(self, index: int, key: jax.Array, *, last: bool, checkpoint_due: bool) -> bool:
         asynchronous = self.asynchronous
+        t0 = time.perf_counter()
         if asynchronous is None:
             branch, metrics, self.levels = self.run.step(self.learner, index, key)
         else:
@@ -1090,6 +1150,8 @@ class RayRunner(Runner):
         self.chaos.after_step(index + 1, last)
         if metrics is not None:
             self.metrics = metrics
+            if self.learner_first_s is None:  # the first step the learner trained on
+                self.learner_first_s = time.perf_counter() - t0
         if asynchronous is not None and checkpoint_due:
             asynchronous.drain()  # a snapshot holds every issued batch's result
         self.reached = index + 1
@@ -1119,12 +1181,23 @@ class RayRunner(Runner):
         extra = branch_text(run.branch_counts, buffer_size)
         values["ray/driver_refs"] = float(driver_refs(self.ray))
         if asynchronous is not None:
-            values.update(asynchronous.stats.scalars(len(self.workers.explorers),
-                                                     len(asynchronous.pending)))
-            extra = asynchronous.stats.text(len(self.workers.explorers), buffer_size)
+            live = live_actors(self.ray, self.actors, self.workers.scorer_names()
+                               if self.workers.explorers else [])
+            values.update(asynchronous.stats.scalars(live, len(asynchronous.pending)))
+            extra = asynchronous.stats.text(live, buffer_size)
+        if self.learner_first_s is not None and not self.first_said:
+            # The learner compiles at its first update, which may come steps after the first
+            # logged one (new levels first): say so when it happens.
+            self.first_said = True
+            values["time/learner_first_update_s"] = self.learner_first_s
+            if report.output.notes is not None:
+                report.output.notes.write(f"  learner's first update: {self.learner_first_s:.1f}"
+                                          f" s (compilation included)\n")
+                report.output.notes.flush()
         report.show(values, None, extra=extra, callback=False)
+        (rate,) = self.rate.add(report.done * self.config.learner.steps_per_update)
         self.record.update(background=True, steps=[self.start, report.done],
-                           env_steps_per_s=report.rate,
+                           env_steps_per_s=rate, rate_window_s=round(self.rate.span_s, 1),
                            buffer_size=buffer_size, **self.schedule_fields())
         callback = report.output.callback
         if callback is not None:
