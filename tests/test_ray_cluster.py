@@ -250,3 +250,33 @@ def test_joining_an_address_where_no_cluster_runs_is_a_clear_error(tmp_path):
     assert done.returncode == 2, done.stderr[-3000:]
     assert "ray.address: no Ray head answers at 127.0.0.1:" in done.stderr
     assert not (tmp_path / "never").exists()  # no run folder for a run that never started
+
+
+def test_joining_an_address_where_a_web_server_listens_fails_at_once(tmp_path, capsys):
+    # A socket that answers is not yet a Ray head: a plain HTTP server is refused in one line,
+    # within seconds, before a run folder exists (Ray itself would retry it for minutes).
+    import http.server
+    import threading
+
+    from tabx_ued.cli import main
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0),
+                                             http.server.SimpleHTTPRequestHandler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    config_file = tmp_path / "tiny.yaml"
+    config_file.write_text(ued_config("robust_plr").to_yaml())
+    try:
+        t0 = time.perf_counter()
+        code = main(["train", str(config_file), "--ray", "--address",
+                     f"127.0.0.1:{server.server_address[1]}", "--run-dir",
+                     str(tmp_path / "never")])
+        elapsed = time.perf_counter() - t0
+    finally:
+        server.shutdown()
+        server.server_close()
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert elapsed < 10
+    lines = [line for line in err.splitlines() if line.startswith("tabx")]  # not the server's
+    assert len(lines) == 1 and "is not a Ray head" in lines[0], err
+    assert not (tmp_path / "never").exists()

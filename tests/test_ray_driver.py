@@ -13,6 +13,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 
@@ -166,6 +167,39 @@ def test_a_run_that_cannot_be_placed_is_refused(tmp_path):
     with pytest.raises(ConfigError, match="reserve 6 CPUs, but this Ray has 3"):
         train(ray_config("robust_plr", **{"ray.explorers": 5}), run_dir=tmp_path / "big",
               stream=io.StringIO(), max_updates=1)
+
+
+def test_a_learner_gpu_on_a_cpu_only_ray_fails_after_the_placement_timeout(tmp_path):
+    # The module's Ray has no GPU: a learner that asks for one is refused in one line naming
+    # the resource, after ray.placement_timeout_s, not left pending for ever.
+    t0 = time.perf_counter()
+    with pytest.raises(ConfigError, match=r"the cluster has 0 GPU of the 1 the run reserves "
+                                          r"\(learner 1\)"):
+        train(ray_config("dr", **{"ray.learner_gpus": 1, "ray.placement_timeout_s": 1}),
+              run_dir=tmp_path / "gpu", stream=io.StringIO(), max_updates=1)
+    assert time.perf_counter() - t0 < 15
+
+
+def test_live_explorers_are_the_ones_answering():
+    from workers.actor_manager import ActorManager
+    from workers.ray_driver import live_actors
+
+    @ray.remote(num_cpus=0)
+    class Stub:
+        def ready(self):
+            return True
+
+    actors = ActorManager(ray)
+    stubs = [Stub.remote() for _ in range(2)]
+    ray.get([s.ready.remote() for s in stubs])
+    for i, stub in enumerate(stubs):
+        actors.add(f"explorer-{i}", stub, restarts=True)
+    assert live_actors(ray, actors, ["explorer-0", "explorer-1"]) == 2
+    ray.kill(stubs[1])
+    deadline = time.perf_counter() + 10
+    while live_actors(ray, actors, ["explorer-0", "explorer-1"]) != 1:
+        assert time.perf_counter() < deadline, "a killed actor still counted live"
+        time.sleep(0.1)
 
 
 def test_the_local_mode_never_imports_ray():

@@ -337,6 +337,8 @@ class RaySection:
     learner_restarts: int = 0  # times a run stopped by a lost actor (its learner) resumes itself
     num_cpus: int = 0  # CPUs of a Ray started here (0: Ray's own count)
     object_store_mb: int = 512  # object store of a Ray started here
+    placement_timeout_s: float = 120.0  # wait this long for the actors' resources, then fail
+    explorers_on_gpu_nodes: bool = False  # Explorers may share a GPU learner's nodes
     actor_restarts: int = -1  # restarts of each Explorer and the Evaluator (-1: no limit)
     chaos_kill_every: int = 0  # kill one of `chaos_roles`' actors every N steps (0: never)
     chaos_kill_every_s: float = 0.0  # ... or every N seconds (0: never)
@@ -362,6 +364,8 @@ class RaySection:
                f"must be >= 0, got {self.learner_restarts}")
         _check(self.object_store_mb >= 64, f"{prefix}.object_store_mb",
                f"must be >= 64, got {self.object_store_mb}")
+        _check(self.placement_timeout_s > 0, f"{prefix}.placement_timeout_s",
+               f"must be > 0, got {self.placement_timeout_s}")
         _check(self.actor_restarts >= -1, f"{prefix}.actor_restarts",
                f"must be -1 (no limit) or >= 0, got {self.actor_restarts}")
         _check(self.chaos_kill_every >= 0, f"{prefix}.chaos_kill_every",

@@ -15,18 +15,25 @@ import os
 import time
 from collections.abc import Mapping
 
-from tensorboard.compat.proto.event_pb2 import Event
+from tensorboard.compat.proto.event_pb2 import Event, SessionLog
 from tensorboard.compat.proto.summary_pb2 import Summary
 from tensorboard.summary.writer.event_file_writer import EventFileWriter
 
 
 class SummaryWriter:
-    """Scalar summaries into an event file in `logdir` (created if needed)."""
+    """Scalar summaries into an event file in `logdir` (created if needed). `purge_step`: the
+    first step this writer logs again (a resumed run redoes the steps after its checkpoint):
+    TensorBoard, and `read_scalars`, drop the earlier files' points at steps >= it, so
+    that no step has two points (a `SessionLog.START` event, as PyTorch's writer does)."""
 
-    def __init__(self, logdir: str | os.PathLike, flush_secs: float = 10.0):
+    def __init__(self, logdir: str | os.PathLike, flush_secs: float = 10.0,
+                 purge_step: int | None = None):
         os.makedirs(logdir, exist_ok=True)
         self.logdir = str(logdir)
         self._writer = EventFileWriter(self.logdir, flush_secs=flush_secs)
+        if purge_step is not None:
+            self._writer.add_event(Event(wall_time=time.time(), step=int(purge_step),
+                                         session_log=SessionLog(status=SessionLog.START)))
 
     def scalar(self, tag: str, value: float, step: int) -> None:
         self.scalars({tag: value}, step)
@@ -57,7 +64,8 @@ class SummaryWriter:
 
 def read_scalars(logdir: str | os.PathLike) -> dict[str, list[tuple[int, float]]]:
     """Every scalar in the event files of `logdir`: tag -> [(step, value), ...] in file order
-    (for tests and scripts; TensorBoard itself reads the files directly)."""
+    (for tests and scripts; TensorBoard itself reads the files directly). A writer's
+    `purge_step` drops the points before it at steps >= it, as TensorBoard does."""
     from tensorboard.backend.event_processing.event_file_loader import RawEventFileLoader
 
     out: dict[str, list[tuple[int, float]]] = {}
@@ -65,6 +73,9 @@ def read_scalars(logdir: str | os.PathLike) -> dict[str, list[tuple[int, float]]
     for name in names:
         for record in RawEventFileLoader(os.path.join(logdir, name)).Load():
             event = Event.FromString(record)
+            if event.HasField("session_log") and event.session_log.status == SessionLog.START:
+                for points in out.values():
+                    points[:] = [p for p in points if p[0] < event.step]
             for value in event.summary.value:
                 if value.HasField("simple_value"):
                     out.setdefault(value.tag, []).append((event.step, value.simple_value))

@@ -90,22 +90,44 @@ def import_ray() -> Any:
     return ray
 
 
-def connect(section: RaySection) -> tuple[Any, bool]:
-    """Ray, connected: to `section.address` if set, else a Ray started here. Returns (ray,
-    whether this call started the connection, so the caller shuts it down)."""
+def keep_driver_off_accelerators() -> bool:
+    """JAX on the CPU in the driver process, set before JAX starts its backends: the driver
+    splits keys and moves small host arrays, and on a GPU head it must take none of the GPU
+    memory the learner needs. False where the backends had started already (a caller that
+    ran JAX first, such as a test session): then nothing changes."""
+    from jax._src import xla_bridge
+
+    if xla_bridge.backends_are_initialized():
+        return False
+    jax.config.update("jax_platforms", "cpu")
+    return True
+
+
+def join_address(section: RaySection) -> str:
+    """The cluster a run joins: `ray.address`, else `RAY_ADDRESS` as Ray's own tools read it
+    (a `ray job submit` entrypoint has it), else "": a Ray of the run's own on this machine."""
+    return section.address or os.environ.get("RAY_ADDRESS", "")
+
+
+def connect(section: RaySection, num_cpus: int | None = None) -> tuple[Any, bool]:
+    """Ray, connected: to `join_address(section)` if any, else a Ray started here (with
+    `num_cpus`, default `section.num_cpus`). Returns (ray, whether this call started the
+    connection, so the caller shuts it down)."""
     ray = import_ray()
     if ray.is_initialized():
         return ray, False
     kwargs: dict[str, Any] = {"logging_level": "WARNING", "log_to_driver": True}
-    if section.address:
-        check_reachable(section.address)
-        kwargs["address"] = section.address
+    address = join_address(section)
+    if address:
+        check_reachable(address)
+        kwargs["address"] = address
     else:
         # "local": a new Ray, even where `ray start` left a cluster that ray.init would join.
         kwargs["address"] = "local"
         kwargs["include_dashboard"] = False
-        if section.num_cpus:
-            kwargs["num_cpus"] = section.num_cpus
+        cpus = num_cpus if num_cpus is not None else section.num_cpus
+        if cpus:
+            kwargs["num_cpus"] = cpus
         kwargs["object_store_memory"] = section.object_store_mb * 2**20
         # A Ray of our own keeps Ray's default token authentication; its notice about that
         # default is noise on every run.
@@ -121,24 +143,45 @@ def connect(section: RaySection) -> tuple[Any, bool]:
         hint = ("" if os.environ.get("RAY_AUTH_MODE") else
                 "; a cluster started with `ray start` checks a token: set RAY_AUTH_MODE=token "
                 "and give this machine its ~/.ray/auth_token")
-        raise ConfigError(f"ray.address: cannot join the cluster at {section.address!r} "
+        raise ConfigError(f"ray.address: cannot join the cluster at {address!r} "
                           f"({err}){hint}") from None
     return ray, True
 
 
+# What a gRPC server (a Ray head's GCS) answers first to a client's HTTP/2 connection preface:
+# a SETTINGS frame (9-byte frame header, type 0x4). A web server or anything else answers
+# otherwise, or not at all; Ray itself would retry such an address for many minutes.
+_HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
+_SETTINGS_FRAME = 4
+
+
 def check_reachable(address: str, timeout_s: float = 5.0) -> None:
-    """Fail fast where no head answers at HOST:PORT (Ray itself retries for minutes)."""
+    """Fail fast, in one line, where no Ray head answers at HOST:PORT: nothing listens, or
+    something that is not a gRPC server (a Ray head's GCS speaks gRPC)."""
     if address in ("auto", "local") or "://" in address:
         return
     host, sep, port = address.rpartition(":")
     if not sep or not port.isdigit():
         raise ConfigError(f"ray.address: expected 'auto' or HOST:PORT, got {address!r}")
     try:
-        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+        with socket.create_connection((host, int(port)), timeout=timeout_s) as sock:
+            sock.sendall(_HTTP2_PREFACE)
+            answer = b""
+            while len(answer) < 9:
+                chunk = sock.recv(9 - len(answer))
+                if not chunk:
+                    break
+                answer += chunk
     except OSError as err:
-        raise ConfigError(f"ray.address: no Ray head answers at {address} ({err.strerror or err}"
-                          f"); start one there (ray start --head --port={port}) or give "
-                          f"another address") from None
+        if not isinstance(err, TimeoutError) and not isinstance(err, socket.timeout):
+            raise ConfigError(f"ray.address: no Ray head answers at {address} "
+                              f"({err.strerror or err}); start one there (ray start --head "
+                              f"--port={port}) or give another address") from None
+        answer = b""
+    if len(answer) < 9 or answer[3] != _SETTINGS_FRAME:
+        raise ConfigError(f"ray.address: {address} is not a Ray head (something listens there "
+                          f"but does not speak Ray's gRPC); give the head's GCS address "
+                          f"(ray start --head prints it)") from None
 
 
 def actor_env(gpu: bool) -> dict[str, str]:
@@ -160,6 +203,121 @@ def learner_gpus(ray: Any, section: RaySection) -> float:
     if section.learner_gpus >= 0:
         return float(section.learner_gpus)
     return 1.0 if ray.cluster_resources().get("GPU", 0) >= 1 else 0.0
+
+
+MIN_EXPLORER_CPUS = 0.25  # below this share an Explorer only waits for its turn
+
+
+@dataclass(frozen=True)
+class LocalPlan:
+    """A Ray started on this machine: its CPUs, the learner's GPUs, each Explorer's CPUs, and
+    a line saying what was chosen ("" where every actor has a CPU of its own)."""
+
+    cpus: int
+    gpus: float
+    explorer_cpus: float
+    note: str
+
+
+def local_resources() -> tuple[int, int]:
+    """(CPUs, GPUs) a Ray started here would find, without starting it."""
+    import_ray()
+    from ray._private.accelerators import NvidiaGPUAcceleratorManager
+    from ray._private.utils import get_num_cpus
+
+    try:
+        gpus = int(NvidiaGPUAcceleratorManager.get_current_node_num_accelerators())
+    except Exception:  # no driver, no nvidia-smi: no GPU Ray could use
+        gpus = 0
+    return int(get_num_cpus()), gpus
+
+
+def local_plan(section: RaySection, cpus: int, gpus_here: int) -> LocalPlan:
+    """How the run's actors fit a Ray started on a machine of `cpus` CPUs and `gpus_here`
+    GPUs, decided before anything starts: Explorers short of a CPU each share what the
+    learner leaves (they wait on the learner's policy much of the time); a run that cannot
+    fit at all is refused."""
+    gpus = (float(section.learner_gpus) if section.learner_gpus >= 0
+            else 1.0 if gpus_here >= 1 else 0.0)
+    if gpus * section.learners > gpus_here:
+        raise ConfigError(f"ray.learner_gpus: the learner asks for {gpus * section.learners:g} "
+                          f"GPU but this machine has {gpus_here}; set ray.learner_gpus=-1 "
+                          f"(auto) or 0, or join a cluster that has one (--address)")
+    cpus = section.num_cpus or cpus
+    learner = "GPU" if gpus else "CPU"
+    left = cpus - (0 if gpus else section.learners)
+    n = section.explorers
+    if n == 0 or left >= n:
+        return LocalPlan(cpus, gpus, 1.0, "")
+    share = int(100 * left / n) / 100  # Ray keeps 4 decimals; 2 read better
+    if share < MIN_EXPLORER_CPUS:
+        raise ConfigError(f"ray.explorers: {n} Explorers and a {learner} learner do not fit a "
+                          f"Ray of {cpus} CPUs (each Explorer would have {share:g} CPU, under "
+                          f"{MIN_EXPLORER_CPUS:g}); lower ray.explorers or raise ray.num_cpus "
+                          f"(logical CPUs may exceed the cores)")
+    return LocalPlan(cpus, gpus, share,
+                     f"ray: a Ray of {cpus} CPUs on this machine: {n} Explorers share {left:g} "
+                     f"CPU ({share:g} each) beside the {learner} learner; "
+                     f"ray.num_cpus={n + cpus - left} gives each a CPU of its own")
+
+
+def requests(section: RaySection, gpus: float, explorer_cpus: float) -> dict[str, dict]:
+    """Actor name -> the resources it reserves (the service and evaluator reserve none)."""
+    out: dict[str, dict] = {("learner" if i == 0 else f"learner-{i}"):
+                            {"GPU": gpus} if gpus else {"CPU": 1.0}
+                            for i in range(section.learners)}
+    for i in range(section.explorers):
+        out[f"explorer-{i}"] = {"CPU": explorer_cpus}
+    return out
+
+
+def wait_for_resources(ray: Any, needs: dict[str, dict], timeout_s: float, stream: TextIO,
+                       poll_s: float = 1.0) -> None:
+    """Wait until the cluster holds, in all, what the actors reserve (an autoscaler may add
+    nodes), at most `timeout_s`; then fail in one line naming the missing resource and who
+    asks for it (Ray would keep the actors pending for ever)."""
+    total: Counter = Counter()
+    for need in needs.values():
+        total.update(need)
+    t0 = time.monotonic()
+    said = False
+    while True:
+        have = ray.cluster_resources()
+        missing = {k: v for k, v in total.items() if have.get(k, 0) + 1e-9 < v}
+        if not missing:
+            return
+        waited = time.monotonic() - t0
+        resource, need = next(iter(missing.items()))
+        askers = ", ".join(f"{name} {n[resource]:g}" for name, n in needs.items()
+                           if n.get(resource))
+        if waited >= timeout_s:
+            raise ConfigError(f"ray.placement_timeout_s: after {waited:.0f} s the cluster has "
+                              f"{have.get(resource, 0):g} {resource} of the {need:g} the run "
+                              f"reserves ({askers}); add nodes with {resource}, or ask for "
+                              f"less (ray.learner_gpus, ray.explorers)")
+        if not said:
+            stream.write(f"ray: waiting up to {timeout_s:g} s for {need:g} {resource} "
+                         f"({askers}); the cluster has {have.get(resource, 0):g}\n")
+            stream.flush()
+            said = True
+        time.sleep(min(poll_s, max(timeout_s - waited, 0.01)))
+
+
+def explorer_selector(ray: Any, gpus: float, allow_gpu_nodes: bool,
+                      stream: TextIO) -> dict[str, str] | None:
+    """Where a GPU learner's Explorers may go: any node but the GPU nodes (a label selector),
+    while the cluster has a CPU-only node; None: anywhere (a CPU learner, asked for, or only
+    GPU nodes, which is then said)."""
+    if not gpus or allow_gpu_nodes:
+        return None
+    nodes = [n for n in ray.nodes() if n.get("Alive")]
+    gpu_nodes = [n["NodeID"] for n in nodes if n["Resources"].get("GPU", 0) > 0]
+    if not any(n["Resources"].get("CPU", 0) > 0 and n["NodeID"] not in gpu_nodes
+               for n in nodes):
+        stream.write("ray: no CPU-only node: the Explorers share the GPU node(s) with the "
+                     "learner\n")
+        return None
+    return {"ray.io/node-id": f"!in({','.join(gpu_nodes)})"}
 
 
 @dataclass
@@ -203,15 +361,21 @@ class Workers:
 
 
 def start_workers(ray: Any, config: TrainConfig, stream: TextIO,
-                  run_name: str | None = None, levels_dir: Path | None = None) -> Workers:
+                  run_name: str | None = None, levels_dir: Path | None = None,
+                  explorer_cpus: float | None = None) -> Workers:
     """The run's actors, constructed (their constructors build each one's part of the run).
     With `run_name` they are named actors, `RUN_NAME/ROLE` in `RAY_NAMESPACE`, so that another
     process (`tabx runs buffer`) can reach them. With `levels_dir` the service logs its
-    commits there (and may restart: it replays them)."""
+    commits there (and may restart: it replays them). `explorer_cpus`: each Explorer's CPUs
+    as `local_plan` chose them for a Ray started here (None: one, checked here)."""
     section = config.ray
     gpus = learner_gpus(ray, section)
-    if not section.address:
+    if explorer_cpus is None and not join_address(section):
         check_resources(ray, config, gpus)
+    explorer_cpus = 1.0 if explorer_cpus is None else explorer_cpus
+    wait_for_resources(ray, requests(section, gpus, explorer_cpus),
+                       section.placement_timeout_s, stream)
+    selector = explorer_selector(ray, gpus, section.explorers_on_gpu_nodes, stream)
 
     def spawn(cls: type, name: str, *args: Any, num_gpus: float = 0.0, restarts: int = 0,
               **options: Any) -> Any:
@@ -250,8 +414,10 @@ def start_workers(ray: Any, config: TrainConfig, stream: TextIO,
                         num_cpus=1 if not gpus else 0,
                         **({} if gpus else {"scheduling_strategy": NodeAffinitySchedulingStrategy(
                             driver_node, soft=True)}))
-    explorers = [spawn(ExplorerActor, f"explorer-{i}", config, num_cpus=1,
-                       scheduling_strategy="SPREAD", restarts=restarts)
+    # Off a GPU learner's nodes unless asked (`explorer_selector`).
+    placement: dict[str, Any] = ({"label_selector": selector} if selector else {})
+    explorers = [spawn(ExplorerActor, f"explorer-{i}", config, num_cpus=explorer_cpus,
+                       scheduling_strategy="SPREAD", restarts=restarts, **placement)
                  for i in range(section.explorers)]
     evaluator = (spawn(EvaluatorActor, "evaluator", config, num_cpus=0, restarts=restarts)
                  if config.ued.eval_suites else None)
@@ -429,6 +595,56 @@ class Evaluation:
     call: Call
 
 
+RATE_WINDOW_S = 60.0  # rates in ray.json, `tabx runs status` and ray/*_per_s: over this window
+
+
+class RateWindow:
+    """Rates of running counts averaged over the last `window_s` seconds (the whole session
+    while it is younger): the rate a run holds, not one step's burst."""
+
+    def __init__(self, window_s: float = RATE_WINDOW_S,
+                 clock: Callable[[], float] = time.perf_counter, start: tuple = ()):
+        self.window_s, self.clock = window_s, clock
+        self.samples: deque[tuple[float, tuple[float, ...]]] = deque()
+        if start:
+            self.samples.append((clock(), tuple(start)))
+
+    def add(self, *counts: float) -> tuple[float, ...]:
+        """Record `counts` now; their rates per second over the window (0 until there are two
+        readings)."""
+        now = self.clock()
+        self.samples.append((now, counts))
+        while len(self.samples) > 2 and self.samples[1][0] <= now - self.window_s:
+            self.samples.popleft()
+        t0, base = self.samples[0]
+        span = now - t0
+        return tuple((c - b) / span if span > 0 else 0.0 for c, b in zip(counts, base,
+                                                                         strict=True))
+
+    @property
+    def span_s(self) -> float:
+        """Seconds the last rates were averaged over."""
+        return self.samples[-1][0] - self.samples[0][0] if self.samples else 0.0
+
+
+def live_actors(ray: Any, actors: ActorManager, names: list[str]) -> int:
+    """Of `names`, the actors answering: not given up by the ActorManager and alive in Ray's
+    actor table (one dead or restarting is not)."""
+    from ray._private import state
+
+    live = 0
+    for name in names:
+        if not actors.available(name):
+            continue
+        actor_id = actors.members[name].actor_id()
+        try:
+            info = state.actors(actor_id=actor_id) if actor_id else {}
+        except Exception:  # the table unreadable: count on the manager's word
+            info = {"State": "ALIVE"}
+        live += info.get("State") == "ALIVE"
+    return live
+
+
 @dataclass
 class RayStats:
     """What the progress line and `ray/*` scalars report."""
@@ -444,12 +660,17 @@ class RayStats:
     learner_busy_s: float = 0.0
     wait_for_levels_s: float = 0.0
     t0: float = field(default_factory=time.perf_counter)
+    window: RateWindow = field(default_factory=lambda: RateWindow(start=(0, 0)))
+    rates: tuple[float, ...] = (0.0, 0.0)  # trained, explored env steps/s over the window
 
     def scalars(self, live_explorers: int, inflight: int) -> dict[str, float]:
+        """The `ray/*` scalars of a logged step (reads the rates: once per logged step)."""
         elapsed = max(time.perf_counter() - self.t0, 1e-9)
+        self.rates = self.window.add(self.trained_steps, self.explored_steps)
         lags = list(self.staleness.elements())
-        out = {"ray/trained_steps_per_s": self.trained_steps / elapsed,
-               "ray/explored_steps_per_s": self.explored_steps / elapsed,
+        out = {"ray/trained_steps_per_s": self.rates[0],
+               "ray/explored_steps_per_s": self.rates[1],
+               "ray/rate_window_s": self.window.span_s,
                "ray/live_explorers": float(live_explorers),
                "ray/inflight_batches": float(inflight),
                "ray/committed_batches": float(self.committed),
@@ -463,11 +684,11 @@ class RayStats:
         return out
 
     def text(self, live_explorers: int, buffer_size: int | None) -> str:
-        elapsed = max(time.perf_counter() - self.t0, 1e-9)
+        """The progress line's part (after `scalars`: its rates)."""
         lags = list(self.staleness.elements())
-        parts = [f"trained {self.trained_steps / elapsed:,.0f}/s",
-                 f"explored {self.explored_steps / elapsed:,.0f}/s",
-                 f"explorers {live_explorers}"]
+        parts = [f"trained {self.rates[0]:,.0f}/s",
+                 f"explored {self.rates[1]:,.0f}/s over {self.window.span_s:.0f} s",
+                 f"explorers {live_explorers} live"]
         if buffer_size is not None:
             parts.append(f"buffer {buffer_size}")
         if lags:
@@ -739,10 +960,15 @@ class RayDriver(Driver):
         self.schedules = dict(schedules or {})
 
     def check(self, config: TrainConfig) -> None:
+        """Every refusal that needs no Ray: made before the run folder exists."""
+        keep_driver_off_accelerators()
         need_ued(config)
-        import_ray()
-        if config.ray.address:
-            check_reachable(config.ray.address)
+        ray = import_ray()
+        address = join_address(config.ray)
+        if address:
+            check_reachable(address)
+        elif not ray.is_initialized():
+            local_plan(config.ray, *local_resources())
 
     def run(self, config: TrainConfig, run_dir: Path, *, resume: bool = False,
             max_updates: int | None = None, progress: bool = True,
@@ -751,6 +977,7 @@ class RayDriver(Driver):
         learner above all: Ray restarts the others in place) up to `ray.learner_restarts`
         times (`workers.learner_group.Restarts`)."""
         need_ued(config)
+        keep_driver_off_accelerators()
         stream = sys.stderr if stream is None else stream
         restarts = Restarts(config.ray.learner_restarts)
         while True:
@@ -771,12 +998,19 @@ class RayDriver(Driver):
                 max_updates: int | None, progress: bool, stream: TextIO,
                 callback: Callback | None, restarts: Restarts) -> Path:
         """One start of the run's actors and `train_loop` over them."""
-        ray, started = connect(config.ray)
+        ray = import_ray()
+        plan = (None if join_address(config.ray) or ray.is_initialized()
+                else local_plan(config.ray, *local_resources()))
+        if plan is not None and plan.note:
+            stream.write(plan.note + "\n")
+            stream.flush()
+        ray, started = connect(config.ray, None if plan is None else plan.cpus)
         workers = None
         record = RunRecord(run_dir / RAY_RECORD)
         run_name = f"{run_dir.name}-{uuid.uuid4().hex[:8]}"
         try:
-            workers = start_workers(ray, config, stream, run_name, run_dir / LEVELS_DIR)
+            workers = start_workers(ray, config, stream, run_name, run_dir / LEVELS_DIR,
+                                    None if plan is None else plan.explorer_cpus)
             record.update(status="running", driver_pid=os.getpid(),
                           address=ray.get_runtime_context().gcs_address,
                           namespace=RAY_NAMESPACE,
@@ -838,6 +1072,9 @@ class RayRunner(Runner):
         self.chaos: Chaos | None = None
         self._asked: tuple[Call, Call] | None = None  # the service's statistics, asked for
         self.reached = 0  # steps done (a restart after a loss counts those since the checkpoint)
+        self.rate = RateWindow()  # env steps/s in ray.json, over RATE_WINDOW_S
+        self.learner_first_s: float | None = None  # the learner's first update, compile included
+        self.first_said = False
 
     @property
     def eval_every(self) -> int:
@@ -859,6 +1096,7 @@ class RayRunner(Runner):
     def begin(self, start: int) -> None:
         ray, workers, config = self.ray, self.workers, self.config
         self.start = self.reached = start
+        self.rate = RateWindow(start=(start * config.learner.steps_per_update,))
         self.learner = RemoteLearner(ray, workers.learner, self.version, self.actors)
         placement = workers.placement(ray)
         group = workers.learner if isinstance(workers.learner, LearnerGroup) else None
@@ -902,6 +1140,7 @@ class RayRunner(Runner):
 
     def step(self, index: int, key: jax.Array, *, last: bool, checkpoint_due: bool) -> bool:
         asynchronous = self.asynchronous
+        t0 = time.perf_counter()
         if asynchronous is None:
             branch, metrics, self.levels = self.run.step(self.learner, index, key)
         else:
@@ -911,6 +1150,8 @@ class RayRunner(Runner):
         self.chaos.after_step(index + 1, last)
         if metrics is not None:
             self.metrics = metrics
+            if self.learner_first_s is None:  # the first step the learner trained on
+                self.learner_first_s = time.perf_counter() - t0
         if asynchronous is not None and checkpoint_due:
             asynchronous.drain()  # a snapshot holds every issued batch's result
         self.reached = index + 1
@@ -940,12 +1181,23 @@ class RayRunner(Runner):
         extra = branch_text(run.branch_counts, buffer_size)
         values["ray/driver_refs"] = float(driver_refs(self.ray))
         if asynchronous is not None:
-            values.update(asynchronous.stats.scalars(len(self.workers.explorers),
-                                                     len(asynchronous.pending)))
-            extra = asynchronous.stats.text(len(self.workers.explorers), buffer_size)
+            live = live_actors(self.ray, self.actors, self.workers.scorer_names()
+                               if self.workers.explorers else [])
+            values.update(asynchronous.stats.scalars(live, len(asynchronous.pending)))
+            extra = asynchronous.stats.text(live, buffer_size)
+        if self.learner_first_s is not None and not self.first_said:
+            # The learner compiles at its first update, which may come steps after the first
+            # logged one (new levels first): say so when it happens.
+            self.first_said = True
+            values["time/learner_first_update_s"] = self.learner_first_s
+            if report.output.notes is not None:
+                report.output.notes.write(f"  learner's first update: {self.learner_first_s:.1f}"
+                                          f" s (compilation included)\n")
+                report.output.notes.flush()
         report.show(values, None, extra=extra, callback=False)
+        (rate,) = self.rate.add(report.done * self.config.learner.steps_per_update)
         self.record.update(background=True, steps=[self.start, report.done],
-                           env_steps_per_s=report.rate,
+                           env_steps_per_s=rate, rate_window_s=round(self.rate.span_s, 1),
                            buffer_size=buffer_size, **self.schedule_fields())
         callback = report.output.callback
         if callback is not None:
@@ -962,6 +1214,8 @@ class RayRunner(Runner):
             self.asynchronous.log_evaluations(output.writer, output.notes)
 
     def checkpoint(self, done: int, run_dir: Path) -> tuple[Any, int]:
+        if self.asynchronous is not None:  # a snapshot holds every issued batch's result
+            self.asynchronous.drain()  # (done already at a due checkpoint; one after Ctrl-C)
         self.run.save(run_dir, done, self.learner)
         return self.learner.train_state, self.learner.version
 

@@ -64,7 +64,9 @@ def status_text(run_dir: str | Path, record: dict[str, Any]) -> str:
         lines.append(f"stopped by: {record['error']}")
     rate = record.get("env_steps_per_s")
     if rate:
-        lines.append(f"env steps/s: {rate:,.0f}; buffer: {record.get('buffer_size')}")
+        window = record.get("rate_window_s")
+        over = f" (over the last {window:.0f} s)" if window else ""
+        lines.append(f"env steps/s: {rate:,.0f}{over}; buffer: {record.get('buffer_size')}")
     if "trained_steps" in record:
         lines.append(f"trained env steps: {record['trained_steps']:,}, explored: "
                      f"{record.get('explored_steps', 0):,}; committed batches "

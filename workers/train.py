@@ -27,7 +27,7 @@ from ued.run_folder import create_run_dir, open_checkpoints, read_run_config
 from workers.continuous import ContinuousRun
 from workers.driver import Callback, Driver
 from workers.local import LocalDriver
-from workers.ray_driver import RayDriver
+from workers.ray_driver import RayDriver, keep_driver_off_accelerators
 
 
 def finished_at(run_dir: Path, config: TrainConfig) -> int | None:
@@ -60,6 +60,8 @@ def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = Non
             config = dataclasses.replace(config, ray=ray).validate()
     elif config is None:
         raise ConfigError("a new run needs a config")
+    if config.ray.enabled:  # before anything below can start JAX's backends
+        keep_driver_off_accelerators()
     if resume and finished_at(Path(run_dir), config) is not None:
         done = finished_at(Path(run_dir), config)
         out = sys.stderr if stream is None else stream
@@ -67,9 +69,10 @@ def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = Non
                   f"updates); nothing to resume\n")
         return Path(run_dir)
     driver = driver if driver is not None else driver_for(config)
-    check_devices(config)  # before a new run's folder exists, as are the scenarios read
+    driver.check(config)  # first: the Ray driver keeps JAX off accelerators before it starts
+    if not config.ray.enabled:  # a Ray run's learner checks its devices on its own node
+        check_devices(config)  # before a new run's folder exists, as are the scenarios read
     scenario_levels(config)
-    driver.check(config)
     if not resume:
         run_dir = create_run_dir(config, run_dir)
     assert run_dir is not None

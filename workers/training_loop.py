@@ -9,7 +9,8 @@
                     log when due (the first step, every run.log_every, the last), timed by a
                         ThroughputClock read after the step's metrics reached the host
                     evaluate when due (every runner.eval_every, the last)
-                    checkpoint when due (every run.checkpoint_every, the last)
+                    checkpoint when due (every run.checkpoint_every, the last), or after a
+                        Ctrl-C (then KeyboardInterrupt: `Interrupt`)
     finally: close the writers and the checkpoints
 
 A `Runner` says what differs: what the train state is and where it lives, what one step does,
@@ -22,6 +23,8 @@ a step, so a resumed run continues the key chain of an uninterrupted one.
 from __future__ import annotations
 
 import abc
+import signal
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
@@ -159,6 +162,31 @@ class Runner(abc.ABC):
         return None
 
 
+class Interrupt:
+    """Ctrl-C (SIGINT) during the loop: the step under way finishes, a checkpoint of it is
+    written, then KeyboardInterrupt is raised as usual; a second Ctrl-C stops at once,
+    without one. Only in the main thread with Python's own SIGINT handler in place (a caller
+    with a handler of its own keeps it)."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._old: Any = None
+
+    def __enter__(self) -> Interrupt:
+        if (threading.current_thread() is threading.main_thread()
+                and signal.getsignal(signal.SIGINT) is signal.default_int_handler):
+            self._old = signal.signal(signal.SIGINT, self._handle)
+        return self
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        self.requested = True
+        signal.signal(signal.SIGINT, self._old)  # the second one: at once
+
+    def __exit__(self, *exc: object) -> None:
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+
+
 def train_loop(runner: Runner, run_dir: Path, *, resume: bool, max_updates: int | None,
                progress: bool, stream: TextIO, callback: Callback | None) -> Path:
     """Run (or, with `resume`, continue) `runner`'s run in `run_dir`; `max_updates` stops
@@ -185,9 +213,13 @@ def train_loop(runner: Runner, run_dir: Path, *, resume: bool, max_updates: int 
         stream.write(f"{'resuming' if resume else 'training'} {runner.headline(run_dir, start)}\n")
         stream.flush()
 
-    output = Output([SummaryWriter(path) for path in runner.event_dirs(run_dir)], bar, callback,
-                    stream if progress else None)
+    # A resumed run redoes the steps after its checkpoint: their earlier points are dropped.
+    purge = start * config.learner.steps_per_update + 1 if resume else None
+    output = Output([SummaryWriter(path, purge_step=purge) for path in runner.event_dirs(run_dir)],
+                    bar, callback, stream if progress else None)
+    interrupt = Interrupt()
     try:
+        interrupt.__enter__()
         clock = ThroughputClock(start, runner.env_steps)
         trained = 0  # steps of this call that trained the policy (the clock's split)
         for index in range(start, stop):
@@ -203,12 +235,18 @@ def train_loop(runner: Runner, run_dir: Path, *, resume: bool, max_updates: int 
                                            total, runner.env_steps, output))
             every = runner.eval_every
             runner.evaluate(done, bool(every) and (done % every == 0 or last), output)
-            if checkpoint_due:
+            if checkpoint_due or interrupt.requested:
                 train_state, version = runner.checkpoint(done, run_dir)
                 checkpoints.save(done, train_state, key,
                                  checkpoint_metadata(config, done, version))
+            if interrupt.requested:
+                stream.write(f"interrupted: checkpoint of step {done} written; continue with: "
+                             f"tabx train --resume {run_dir}\n")
+                stream.flush()
+                raise KeyboardInterrupt
         runner.finish(stop, output)
     finally:
+        interrupt.__exit__()
         for writer in output.writers:
             writer.close()
         checkpoints.close()
