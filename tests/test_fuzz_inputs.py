@@ -398,10 +398,16 @@ OVERRIDES = {
     "levels.free=[nope]": r"levels\.free: unknown free parameter 'nope'",
     "levels.zone_count=-1": r"levels\.zone_count: expected an integer or a list of them",
     "seed=\x00": r"seed: expected an integer",
+    # Values that pass the type check must still be refused before a run folder exists.
+    "seed=-1": r"seed: must be an integer in \[0, 2\*\*63\)",
+    "seed=1e30": r"seed: must be an integer in \[0, 2\*\*63\)",
+    "seed=18446744073709551616": r"seed: must be an integer in \[0, 2\*\*63\)",
+    "run.name=" + "n" * 10_000: r"run\.name: must be at most 200 bytes",
+    "learner.lr=1e308": r"learner\.lr: must be in \(0, 1\.0\]",
 }
 
 
-@pytest.mark.parametrize("override", list(OVERRIDES))
+@pytest.mark.parametrize("override", list(OVERRIDES), ids=lambda o: o[:40])
 def test_bad_override_is_one_clear_error(override, config_text, tmp_path, capsys):
     path = tmp_path / "ok.yaml"
     path.write_text(config_text)
