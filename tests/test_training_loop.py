@@ -94,3 +94,44 @@ def test_a_resumed_run_continues_the_key_chain(tmp_path):
     assert resumed.calls[0] == ("restore", 3)  # step 3: the last of the first call
     assert [n for what, n in resumed.calls if what == "step"] == [3, 4]
     np.testing.assert_array_equal(jnp.asarray(resumed.state["x"]), whole.state["x"])
+
+
+class Diverging(Counting):
+    """Counting whose state turns NaN at step `at` (0-based), with a `loss` metric."""
+
+    def __init__(self, config, at: int, log_loss: bool = True):
+        super().__init__(config)
+        self.at, self.log_loss = at, log_loss
+
+    def step(self, index: int, key, *, last: bool, checkpoint_due: bool) -> bool:
+        super().step(index, key, last=last, checkpoint_due=checkpoint_due)
+        if index >= self.at:
+            self.state = {"x": self.state["x"] * jnp.nan}
+        return True
+
+    def host_metrics(self) -> dict[str, Any]:
+        x = float(self.state["x"])
+        return {"x": x, "loss/total": x} if self.log_loss else {"x": x}
+
+
+def test_a_nonfinite_loss_stops_the_run_before_it_is_saved(tmp_path):
+    """A NaN loss stops the run at that update with one line naming the last good checkpoint;
+    with no loss logged, the parameters' check keeps the NaN state out of the checkpoints."""
+    from ued.run_folder import open_checkpoints
+    from workers.training_loop import TrainingDiverged
+
+    for log_loss, stopped_at in ((True, 4), (False, 4)):
+        run_dir = tmp_path / f"loss-{log_loss}"
+        runner = Diverging(config(), at=2, log_loss=log_loss)  # step 3 (done) is the first NaN
+        try:
+            train_loop(runner, run_dir, resume=False, max_updates=None, progress=False,
+                       stream=io.StringIO(), callback=None)
+        except TrainingDiverged as err:
+            message = str(err)
+        else:
+            raise AssertionError("a NaN run finished")
+        assert "\n" not in message
+        assert f"diverged at update {stopped_at}" in message
+        assert "step 2" in message and "checkpoints/2" in message, message
+        with open_checkpoints(run_dir, runner.config) as checkpoints:
+            assert checkpoints.all() == [2]  # the NaN state of step 4 was never saved
