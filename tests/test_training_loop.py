@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from test_learners_helpers import tiny_config
 
+from workers.driver import Driver
 from workers.training_loop import Output, Report, Runner, train_loop
 
 
@@ -135,3 +136,50 @@ def test_a_nonfinite_loss_stops_the_run_before_it_is_saved(tmp_path):
         assert "step 2" in message and "checkpoints/2" in message, message
         with open_checkpoints(run_dir, runner.config) as checkpoints:
             assert checkpoints.all() == [2]  # the NaN state of step 4 was never saved
+
+
+class CountingDriver(Driver):
+    """The local driver's part of `train`, with the Counting stand-in for a learner."""
+
+    def run(self, config, run_dir, *, resume=False, max_updates=None, progress=True,
+            stream=None, callback=None):
+        return train_loop(Counting(config), run_dir, resume=resume, max_updates=max_updates,
+                          progress=progress, stream=stream or io.StringIO(), callback=callback)
+
+
+def finished_run(tmp_path: Path) -> Path:
+    from workers.train import train
+
+    return train(config(), run_dir=tmp_path / "run", driver=CountingDriver(), progress=False)
+
+
+def test_resuming_a_finished_run_checks_its_last_checkpoint(tmp_path):
+    """A finished run whose last checkpoint is intact is "already complete"; a damaged last
+    step is resumed from the step before (and finished again); with every checkpoint damaged,
+    one line says none can be resumed, as `tabx runs check` does."""
+    from ued.config import ConfigError
+    from workers.train import train
+
+    run_dir = finished_run(tmp_path)
+    out = io.StringIO()
+    train(run_dir=run_dir, resume=True, driver=CountingDriver(), stream=out)
+    assert "already complete (5 of 5 updates)" in out.getvalue()
+
+    for data in (run_dir / "checkpoints/5").rglob("*"):
+        if data.is_file() and data.stat().st_size > 64 and "ocdbt" in str(data):
+            data.write_bytes(data.read_bytes()[:32])
+    out = io.StringIO()
+    train(run_dir=run_dir, resume=True, driver=CountingDriver(), stream=out)
+    assert "already complete" not in out.getvalue()
+    assert "resume: step 5 is damaged" in out.getvalue() and "from step 4" in out.getvalue()
+
+    for step in (2, 4, 5):
+        for data in (run_dir / f"checkpoints/{step}").rglob("*"):
+            if data.is_file() and data.stat().st_size > 64 and "ocdbt" in str(data):
+                data.write_bytes(data.read_bytes()[:32])
+    try:
+        train(run_dir=run_dir, resume=True, driver=CountingDriver(), stream=io.StringIO())
+    except ConfigError as err:
+        assert "no intact checkpoint to resume from" in str(err)
+    else:
+        raise AssertionError("resumed a run whose every checkpoint is damaged")

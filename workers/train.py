@@ -27,13 +27,17 @@ from ued.run_folder import create_run_dir, open_checkpoints, read_run_config
 from workers.driver import Callback, Driver
 from workers.local import LocalDriver
 from workers.ray_driver import RayDriver
+from workers.resume import step_intact
 
 
 def finished_at(run_dir: Path, config: TrainConfig) -> int | None:
-    """The last update of a run whose newest checkpoint is its last, else None."""
+    """The last update of a run whose newest checkpoint is its last and intact, else None (a
+    damaged last step is resumed from the newest intact one, as any other)."""
     with open_checkpoints(run_dir, config) as checkpoints:
         latest = checkpoints.latest()
-    return latest if latest is not None and latest >= config.learner.num_updates else None
+        if latest is None or latest < config.learner.num_updates:
+            return None
+        return latest if step_intact(run_dir, checkpoints, config, latest) else None
 
 
 def driver_for(config: TrainConfig) -> Driver:
@@ -56,8 +60,8 @@ def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = Non
             config = dataclasses.replace(config, ray=ray).validate()
     elif config is None:
         raise ConfigError("a new run needs a config")
-    if resume and finished_at(Path(run_dir), config) is not None:
-        done = finished_at(Path(run_dir), config)
+    done = finished_at(Path(run_dir), config) if resume else None
+    if done is not None:
         out = sys.stderr if stream is None else stream
         out.write(f"{run_dir}: already complete ({done} of {config.learner.num_updates} "
                   f"updates); nothing to resume\n")
