@@ -183,3 +183,45 @@ def test_resuming_a_finished_run_checks_its_last_checkpoint(tmp_path):
         assert "no intact checkpoint to resume from" in str(err)
     else:
         raise AssertionError("resumed a run whose every checkpoint is damaged")
+
+
+def test_a_second_writer_of_a_run_folder_is_refused(tmp_path):
+    """While one process holds a run folder, `--resume` of it is one ConfigError that changes
+    nothing; the lock adds no file, ends with its holder (also one killed with SIGKILL) and
+    never blocks after it."""
+    import subprocess
+    import sys
+
+    from ued.config import ConfigError
+    from ued.run_folder import lock_run_dir
+    from workers.train import train
+
+    run_dir = finished_run(tmp_path)
+    before = sorted(p.name for p in run_dir.iterdir())
+    with lock_run_dir(run_dir):
+        try:
+            train(run_dir=run_dir, resume=True, driver=CountingDriver(), stream=io.StringIO())
+        except ConfigError as err:
+            assert "another process is training this run" in str(err)
+        else:
+            raise AssertionError("two writers of one run folder")
+    assert sorted(p.name for p in run_dir.iterdir()) == before
+    holder = subprocess.Popen(
+        # The same kernel lock as lock_run_dir's, without importing the project (seconds).
+        [sys.executable, "-c", "import fcntl, os, time\n"
+         f"fd = os.open({str(run_dir)!r}, os.O_RDONLY | os.O_DIRECTORY)\n"
+         "fcntl.flock(fd, fcntl.LOCK_EX)\nprint('held', flush=True)\ntime.sleep(60)"],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        try:
+            with lock_run_dir(run_dir):
+                raise AssertionError("a held run folder was locked twice")
+        except ConfigError:
+            pass
+    finally:
+        holder.kill()  # SIGKILL: no cleanup runs in the holder
+        holder.wait(timeout=10)
+    out = io.StringIO()
+    train(run_dir=run_dir, resume=True, driver=CountingDriver(), stream=out)
+    assert "already complete" in out.getvalue()

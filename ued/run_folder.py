@@ -16,7 +16,11 @@
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import hashlib
+import os
+from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -83,6 +87,28 @@ def create_run_dir(config: TrainConfig, run_dir: str | Path | None = None) -> Pa
     path.mkdir(parents=True, exist_ok=True)
     atomic_write_text(path / CONFIG_FILE, config.to_yaml())
     return path
+
+
+@contextlib.contextmanager
+def lock_run_dir(run_dir: str | Path) -> Iterator[None]:
+    """Hold the run folder for one writer (a training process) while the block runs;
+    ConfigError at once if another process holds it. The lock is the kernel's `flock` on the
+    folder itself: no file is added, and it ends with the process however that ends (a
+    killed run never leaves a stale lock)."""
+    path = Path(run_dir)
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot open the run folder ({err.strerror})") from None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ConfigError(f"{path}: another process is training this run; wait for it to "
+                              "end (or stop it) before resuming") from None
+        yield
+    finally:
+        os.close(fd)  # releases the lock
 
 
 def read_run_config(run_dir: str | Path) -> TrainConfig:

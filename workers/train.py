@@ -23,7 +23,7 @@ from typing import TextIO
 from ued import compile_cache
 from ued.config import ConfigError, RaySection, TrainConfig
 from ued.experiment import check_devices, scenario_levels
-from ued.run_folder import create_run_dir, open_checkpoints, read_run_config
+from ued.run_folder import create_run_dir, lock_run_dir, open_checkpoints, read_run_config
 from workers.driver import Callback, Driver
 from workers.local import LocalDriver
 from workers.ray_driver import RayDriver
@@ -60,21 +60,38 @@ def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = Non
             config = dataclasses.replace(config, ray=ray).validate()
     elif config is None:
         raise ConfigError("a new run needs a config")
-    done = finished_at(Path(run_dir), config) if resume else None
-    if done is not None:
-        out = sys.stderr if stream is None else stream
-        out.write(f"{run_dir}: already complete ({done} of {config.learner.num_updates} "
-                  f"updates); nothing to resume\n")
-        return Path(run_dir)
     driver = driver if driver is not None else driver_for(config)
-    check_devices(config)  # before a new run's folder exists, as are the scenarios read
+    if resume:
+        assert run_dir is not None
+        with lock_run_dir(run_dir):  # one writer: a second --resume of it is refused
+            done = finished_at(Path(run_dir), config)
+            if done is not None:
+                out = sys.stderr if stream is None else stream
+                out.write(f"{run_dir}: already complete ({done} of "
+                          f"{config.learner.num_updates} updates); nothing to resume\n")
+                return Path(run_dir)
+            return _start(driver, config, Path(run_dir), resume, max_updates, progress,
+                          stream, callback)
+    _check_start(driver, config)
+    run_dir = create_run_dir(config, run_dir)
+    with lock_run_dir(run_dir):
+        return _start(driver, config, run_dir, resume, max_updates, progress, stream, callback)
+
+
+def _check_start(driver: Driver, config: TrainConfig) -> None:
+    """What is checked before a new run's folder exists: devices, scenarios, the driver."""
+    check_devices(config)
     scenario_levels(config)
     driver.check(config)
-    if not resume:
-        run_dir = create_run_dir(config, run_dir)
-    assert run_dir is not None
+
+
+def _start(driver: Driver, config: TrainConfig, run_dir: Path, resume: bool,
+           max_updates: int | None, progress: bool, stream: TextIO | None,
+           callback: Callback | None) -> Path:
+    if resume:
+        _check_start(driver, config)
     compile_cache.enable(config.run.compile_cache)
-    return driver.run(config, Path(run_dir), resume=resume, max_updates=max_updates,
+    return driver.run(config, run_dir, resume=resume, max_updates=max_updates,
                       progress=progress, stream=stream, callback=callback)
 
 
