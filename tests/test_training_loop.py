@@ -5,12 +5,15 @@ state of an uninterrupted one. No learner is compiled."""
 from __future__ import annotations
 
 import io
+import os
+import re
 from pathlib import Path
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from test_learners_helpers import tiny_config
 
 from workers.driver import Driver
@@ -225,3 +228,52 @@ def test_a_second_writer_of_a_run_folder_is_refused(tmp_path):
     out = io.StringIO()
     train(run_dir=run_dir, resume=True, driver=CountingDriver(), stream=out)
     assert "already complete" in out.getvalue()
+
+
+class Heavy(Counting):
+    """Counting with 1.2 MB of random parameters beside its sum: two checkpoints fill 2 MB."""
+
+    def init(self, key):
+        self.state = {"x": jax.random.uniform(key),
+                      "w": jax.random.uniform(jax.random.key(1), (300_000,))}
+
+    def step(self, index: int, key, *, last: bool, checkpoint_due: bool) -> bool:
+        self.state = {**self.state, "x": self.state["x"] + jax.random.uniform(key)}
+        return True
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 2 MB tmpfs (root only: skipped elsewhere)."""
+    import subprocess
+
+    mount = tmp_path / "disk"
+    mount.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs",
+                                            str(mount)], capture_output=True).returncode:
+        pytest.skip("mounting a small tmpfs needs root")
+    yield mount
+    subprocess.run(["umount", "-l", str(mount)], check=False)
+
+
+def test_a_full_disk_during_a_checkpoint_is_one_line(small_disk, capfd):
+    """The checkpoint of step 4 does not fit: one CheckpointError naming the folder, the free
+    space and the space needed; nothing else on stderr; checkpoint 2 restores."""
+    from ued.checkpoint import CheckpointError
+    from ued.run_folder import open_checkpoints
+
+    run_dir = small_disk / "run"
+    runner = Heavy(config())
+    with pytest.raises(CheckpointError) as caught:
+        train_loop(runner, run_dir, resume=False, max_updates=None, progress=False,
+                   stream=io.StringIO(), callback=None)
+    message = str(caught.value)
+    assert "\n" not in message and f"{run_dir}/checkpoints/4: cannot be saved: no space" in message
+    assert re.search(r"\d+\.\d MB free; the checkpoint needs about 1\.2 MB\); checkpoint 2 is "
+                     r"intact", message), message
+    _, err = capfd.readouterr()
+    assert "Traceback" not in err and "ERROR" not in err, err[-2000:]
+    assert sorted(p.name for p in (run_dir / "checkpoints").iterdir()) == ["2"]
+    with open_checkpoints(run_dir, runner.config) as checkpoints:
+        state, _, step = checkpoints.restore(runner.template(), 2)
+    assert step == 2 and state["w"].shape == (300_000,)

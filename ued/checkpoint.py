@@ -23,9 +23,11 @@ check asks it). Checkpoints saved without digests restore unchecked.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import logging
 import os
+import shutil
 import sys
 import zlib
 from collections.abc import Mapping, Sequence
@@ -110,9 +112,47 @@ class Checkpoints:
                  if path.is_file()}
         custom = {**(metadata or {}),
                   INTEGRITY_KEY: {"arrays": array_digests(item), "files": files}}
-        self._manager.save(int(update), args=ocp.args.StandardSave(item),
-                           custom_metadata=custom)
-        self._manager.wait_until_finished()
+        quiet = _SaveFailureRecords()
+        absl_logger = logging.getLogger("absl")
+        absl_logger.addFilter(quiet)
+        _quiet_abandoned_reads()
+        try:
+            self._manager.save(int(update), args=ocp.args.StandardSave(item),
+                               custom_metadata=custom)
+            self._manager.wait_until_finished()
+        except Exception as err:  # noqa: BLE001 (orbax and TensorStore raise many kinds)
+            raise self._save_error(int(update), item, err) from err
+        finally:
+            absl_logger.removeFilter(quiet)
+
+    def _save_error(self, update: int, item: Any, err: BaseException) -> CheckpointError:
+        """The one line a failed save ends in. Its temporary folder (never a checkpoint) is
+        removed, so a full disk gets its space back; the checkpoints before stay as they
+        were."""
+        for partial in self.directory.glob(f"{update}.orbax-checkpoint-tmp*"):
+            shutil.rmtree(partial, ignore_errors=True)
+        previous = [step for step in self.all() if step != update]
+        kept = (f"checkpoint {previous[-1]} is intact" if previous
+                else "no checkpoint was saved before")
+        chain, cause = [], err
+        while cause is not None and len(chain) < 8:
+            chain.append(cause)
+            cause = cause.__cause__ or cause.__context__
+        full = any(getattr(e, "errno", None) == errno.ENOSPC or "RESOURCE_EXHAUSTED" in str(e)
+                   or "No space left" in str(e) for e in chain)
+        if not full:
+            return CheckpointError(f"{self.directory / str(update)}: cannot be saved "
+                                   f"({gist(err)}); {kept}")
+        need = sum(np.asarray(leaf).nbytes for leaf in jax.tree.leaves(item))
+        try:
+            free = shutil.disk_usage(self.directory).free
+        except OSError:
+            free = 0
+        return CheckpointError(f"{self.directory / str(update)}: cannot be saved: no space left "
+                               f"on the device of {self.directory} ({free / 1e6:.1f} MB free; "
+                               f"the checkpoint needs about {need / 1e6:.1f} MB); {kept}; free "
+                               f"some space and continue with tabx train --resume "
+                               f"{self.directory.parent}")
 
     def metadata(self, update: int) -> dict[str, Any]:
         """The custom metadata of checkpoint `update`; {} for one saved without any."""
@@ -263,6 +303,14 @@ class _AbandonedTasks(logging.Filter):
             return True
         text = message.lower()
         return not any(word in text for word in ("orbax", "tensorstore", "zarr", "ocdbt"))
+
+
+class _SaveFailureRecords(logging.Filter):
+    """Drops orbax's reports of a failed save's writer threads (each with a traceback): the
+    caller gets the failure as one `CheckpointError`."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "_SignalingThread.run() raised an exception" not in record.getMessage()
 
 
 _QUIETED = False
