@@ -244,6 +244,10 @@ RUN_DAMAGE = {
     "ray.json a list": (lambda r: (r / "ray.json").write_text("[1, 2]"),
                         r"ray\.json: not a Ray record", (STATUS, LIVE)),
     "events missing": (lambda r: remove(r / "events"), r"no events/ folder", (PLOT,)),
+    "events a file": (lambda r: (remove(r / "events"), (r / "events").write_text("x")),
+                      r"events: not a folder", (RESUME,)),
+    "levels a file": (lambda r: (remove(r / LEVELS_DIR), (r / LEVELS_DIR).write_text("x")),
+                      r"levels: not a folder", (RESUME,)),
     "events damaged": (lambda r: [p.write_bytes(bytes(range(256)) * 4)
                                   for p in (r / "events").iterdir()],
                        r"no scalars in their event folders", (PLOT,)),

@@ -277,3 +277,37 @@ def test_a_full_disk_during_a_checkpoint_is_one_line(small_disk, capfd):
     with open_checkpoints(run_dir, runner.config) as checkpoints:
         state, _, step = checkpoints.restore(runner.template(), 2)
     assert step == 2 and state["w"].shape == (300_000,)
+
+
+def test_a_read_only_run_folder_is_refused_before_any_work(tmp_path):
+    """`--resume` of a run folder that cannot be written (a read-only mount as root, else its
+    permissions), and a new run under a parent that cannot be written: one ConfigError each,
+    and nothing changes."""
+    import subprocess
+
+    from ued.config import ConfigError
+    from workers.train import train
+
+    run_dir = finished_run(tmp_path)
+    for data in (run_dir / "checkpoints/5").rglob("*"):  # so that resume would train
+        if data.is_file() and data.stat().st_size > 64 and "ocdbt" in str(data):
+            data.write_bytes(data.read_bytes()[:32])
+    before = sorted(str(p) for p in run_dir.rglob("*"))
+    if os.geteuid() == 0:
+        mounted = subprocess.run(["mount", "--bind", "-o", "ro", str(run_dir), str(run_dir)],
+                                 capture_output=True).returncode == 0
+        if not mounted:
+            pytest.skip("no read-only bind mount here")
+        undo = ["umount", "-l", str(run_dir)]
+    else:
+        run_dir.chmod(0o555)
+        undo = ["chmod", "755", str(run_dir)]
+    try:
+        with pytest.raises(ConfigError, match=r"not writable \(Read-only file system|"
+                                              r"not writable \(Permission denied"):
+            train(run_dir=run_dir, resume=True, driver=CountingDriver(), stream=io.StringIO())
+        with pytest.raises(ConfigError, match=r"cannot make the run folder"):
+            train(config(), run_dir=run_dir / "new", driver=CountingDriver(), progress=False)
+    finally:
+        subprocess.run(undo, check=False)
+    assert sorted(str(p) for p in run_dir.rglob("*")) == before

@@ -20,6 +20,7 @@ import contextlib
 import fcntl
 import hashlib
 import os
+import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import datetime
@@ -84,9 +85,41 @@ def create_run_dir(config: TrainConfig, run_dir: str | Path | None = None) -> Pa
     path = Path(run_dir) if run_dir is not None else new_run_dir(config)
     if (path / CONFIG_FILE).exists():
         raise ConfigError(f"{path} already holds a run; continue it with --resume {path}")
-    path.mkdir(parents=True, exist_ok=True)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot make the run folder ({err.strerror})") from None
     atomic_write_text(path / CONFIG_FILE, config.to_yaml())
     return path
+
+
+def written_folders(run_dir: str | Path, config: TrainConfig) -> list[Path]:
+    """The folders a run writes into: the run folder, its event folders, checkpoints/ and,
+    for a UED run, levels/."""
+    run_dir = Path(run_dir)
+    events = ([seed_dir(run_dir, seed) for seed in config.seeds] if config.seeds
+              else [run_dir / EVENTS_DIR])
+    levels = [run_dir / LEVELS_DIR] if config.ued.enabled else []
+    return [run_dir, *events, run_dir / CHECKPOINT_DIR, *levels]
+
+
+def check_writable(run_dir: str | Path, config: TrainConfig) -> None:
+    """ConfigError naming the first folder a run writes into that is not a folder or cannot
+    be written (a read-only file system or permissions), before any work: a file is made in
+    each that exists (else in the run folder) and removed again."""
+    for folder in written_folders(run_dir, config):
+        if folder.exists() and not folder.is_dir():
+            raise ConfigError(f"{folder}: not a folder (the run writes its files in it); "
+                              "move it away")
+        if not folder.exists():
+            continue
+        try:
+            fd, probe = tempfile.mkstemp(dir=folder, prefix=".tabx-write-check-")
+            os.close(fd)
+            os.unlink(probe)
+        except OSError as err:
+            raise ConfigError(f"{folder}: not writable ({err.strerror}); the run writes its "
+                              "files there") from None
 
 
 @contextlib.contextmanager
@@ -243,6 +276,7 @@ def load_policy(run_dir: str | Path, checkpoint: int | None = None) -> TrainedPo
 
 
 __all__ = ["CHECKPOINT_DIR", "CONFIG_FILE", "EVENTS_DIR", "LEVELS_DIR", "SEED_DIR_PREFIX",
-           "SET_ASIDE_DIR", "SNAPSHOT_FILES", "TrainedPolicy", "checkpoint_metadata", "config_hash",
-           "create_run_dir", "folder_seed", "load_policy", "new_run_dir", "open_checkpoints",
-           "read_run_config", "run_summary", "seed_dir", "split_seed_dir"]
+           "SET_ASIDE_DIR", "SNAPSHOT_FILES", "TrainedPolicy", "check_writable",
+           "checkpoint_metadata", "config_hash", "create_run_dir", "folder_seed", "load_policy",
+           "lock_run_dir", "new_run_dir", "open_checkpoints", "read_run_config", "run_summary",
+           "seed_dir", "split_seed_dir", "written_folders"]

@@ -23,7 +23,13 @@ from typing import TextIO
 from ued import compile_cache
 from ued.config import ConfigError, RaySection, TrainConfig
 from ued.experiment import check_devices, scenario_levels
-from ued.run_folder import create_run_dir, lock_run_dir, open_checkpoints, read_run_config
+from ued.run_folder import (
+    check_writable,
+    create_run_dir,
+    lock_run_dir,
+    open_checkpoints,
+    read_run_config,
+)
 from workers.driver import Callback, Driver
 from workers.local import LocalDriver
 from workers.ray_driver import RayDriver
@@ -64,6 +70,7 @@ def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = Non
     if resume:
         assert run_dir is not None
         with lock_run_dir(run_dir):  # one writer: a second --resume of it is refused
+            check_writable(run_dir, config)
             done = finished_at(Path(run_dir), config)
             if done is not None:
                 out = sys.stderr if stream is None else stream
