@@ -244,6 +244,10 @@ RUN_DAMAGE = {
     "ray.json a list": (lambda r: (r / "ray.json").write_text("[1, 2]"),
                         r"ray\.json: not a Ray record", (STATUS, LIVE)),
     "events missing": (lambda r: remove(r / "events"), r"no events/ folder", (PLOT,)),
+    # A valid config that is not the one the checkpoints were trained with (a value cut short).
+    "config changed": (lambda r: edit_config(r, "gamma: 0.99", "gamma: 0.9"),
+                       r"config\.yaml: differs from the config checkpoint 4 was trained with",
+                       (RESUME,)),
     "events a file": (lambda r: (remove(r / "events"), (r / "events").write_text("x")),
                       r"events: not a folder", (RESUME,)),
     "levels a file": (lambda r: (remove(r / LEVELS_DIR), (r / LEVELS_DIR).write_text("x")),

@@ -311,3 +311,23 @@ def test_a_read_only_run_folder_is_refused_before_any_work(tmp_path):
     finally:
         subprocess.run(undo, check=False)
     assert sorted(str(p) for p in run_dir.rglob("*")) == before
+
+
+def test_a_resumed_run_compares_its_config_with_its_checkpoint(tmp_path):
+    """config.yaml cut to a shorter valid value: `--resume` refuses it in one line, naming
+    the file; the same file restored resumes."""
+    from ued.config import ConfigError
+    from ued.run_folder import CONFIG_FILE
+    from workers.train import train
+
+    run_dir = train(config(), run_dir=tmp_path / "run", driver=CountingDriver(), progress=False,
+                    max_updates=2)
+    path = run_dir / CONFIG_FILE
+    text = path.read_text()
+    assert "total_timesteps: 320\n" in text
+    path.write_text(text.replace("total_timesteps: 320\n", "total_timesteps: 32\n"))
+    with pytest.raises(ConfigError, match=r"config\.yaml: differs from the config checkpoint 2 "
+                                          r"was trained with"):
+        train(run_dir=run_dir, resume=True, driver=CountingDriver(), stream=io.StringIO())
+    path.write_text(text)
+    train(run_dir=run_dir, resume=True, driver=CountingDriver(), stream=io.StringIO())

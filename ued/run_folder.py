@@ -17,6 +17,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import fcntl
 import hashlib
 import os
@@ -31,7 +32,14 @@ import jax
 
 from tabx.files import atomic_write_text
 from ued.checkpoint import CheckpointError, Checkpoints
-from ued.config import TEAMS, ConfigError, TrainConfig, config_from_dict, read_config_file
+from ued.config import (
+    TEAMS,
+    ConfigError,
+    RaySection,
+    TrainConfig,
+    config_from_dict,
+    read_config_file,
+)
 from ued.experiment import learner_for, seed_keys
 from ued.learners.ppo import PPOLearner
 
@@ -172,6 +180,33 @@ def config_hash(config: TrainConfig) -> str:
     return hashlib.sha256(config.to_yaml().encode()).hexdigest()
 
 
+def training_hash(config: TrainConfig) -> str:
+    """`config_hash` without the `ray:` section: what a resumed run must still match
+    (`--resume --ray` may continue a run on another cluster)."""
+    return config_hash(dataclasses.replace(config, ray=RaySection()))
+
+
+def config_change(run_dir: str | Path, config: TrainConfig, checkpoints: Checkpoints
+                  ) -> str | None:
+    """What says that `config.yaml` (read as `config`) is not the config the newest
+    checkpoint was trained with (its recorded `training_sha256` differs), or None; None too
+    for checkpoints that record none, or whose metadata cannot be read (resume reports
+    those)."""
+    for update in reversed(checkpoints.all()):
+        try:
+            recorded = checkpoints.metadata(update).get("training_sha256")
+        except Exception:  # noqa: BLE001 (a damaged checkpoint: resume's checks name it)
+            continue
+        if not isinstance(recorded, str):
+            return None
+        if recorded != training_hash(config):
+            return (f"{Path(run_dir) / CONFIG_FILE}: differs from the config checkpoint "
+                    f"{update} was trained with (its sha256 was recorded then); restore the "
+                    "file, or start a new run with this config")
+        return None
+    return None
+
+
 def checkpoint_metadata(config: TrainConfig, update: int, policy_version: int
                         ) -> dict[str, Any]:
     """What a checkpoint carries as orbax custom metadata: enough to say, from the checkpoint
@@ -181,7 +216,8 @@ def checkpoint_metadata(config: TrainConfig, update: int, policy_version: int
 
     from tabx import __version__
 
-    return {"config_sha256": config_hash(config), "update": int(update),
+    return {"config_sha256": config_hash(config), "training_sha256": training_hash(config),
+            "update": int(update),
             "policy_version": int(policy_version), "algorithm": config.algorithm,
             "ued_method": config.ued.method, "tabx_ued": __version__, "jax": jax.__version__,
             "flax": flax.__version__, "orbax_checkpoint": orbax.checkpoint.__version__}
@@ -277,6 +313,7 @@ def load_policy(run_dir: str | Path, checkpoint: int | None = None) -> TrainedPo
 
 __all__ = ["CHECKPOINT_DIR", "CONFIG_FILE", "EVENTS_DIR", "LEVELS_DIR", "SEED_DIR_PREFIX",
            "SET_ASIDE_DIR", "SNAPSHOT_FILES", "TrainedPolicy", "check_writable",
-           "checkpoint_metadata", "config_hash", "create_run_dir", "folder_seed", "load_policy",
-           "lock_run_dir", "new_run_dir", "open_checkpoints", "read_run_config", "run_summary",
-           "seed_dir", "split_seed_dir", "written_folders"]
+           "checkpoint_metadata", "config_change", "config_hash", "create_run_dir",
+           "folder_seed", "load_policy", "lock_run_dir", "new_run_dir", "open_checkpoints",
+           "read_run_config", "run_summary", "seed_dir", "split_seed_dir", "training_hash",
+           "written_folders"]

@@ -25,6 +25,7 @@ from ued.config import ConfigError, RaySection, TrainConfig
 from ued.experiment import check_devices, scenario_levels
 from ued.run_folder import (
     check_writable,
+    config_change,
     create_run_dir,
     lock_run_dir,
     open_checkpoints,
@@ -71,6 +72,10 @@ def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = Non
         assert run_dir is not None
         with lock_run_dir(run_dir):  # one writer: a second --resume of it is refused
             check_writable(run_dir, config)
+            with open_checkpoints(run_dir, config) as checkpoints:
+                changed = config_change(run_dir, config, checkpoints)
+            if changed is not None:
+                raise ConfigError(changed)
             done = finished_at(Path(run_dir), config)
             if done is not None:
                 out = sys.stderr if stream is None else stream
