@@ -679,3 +679,23 @@ def test_strict_yaml_reads_what_yaml_reads():
     assert len(files) > 30
     for path in files:
         assert read_yaml(path.read_bytes(), str(path)) == yaml.safe_load(path.read_text()), path
+
+
+def test_a_wrong_value_in_an_override_is_blamed_on_the_override():
+    """The override that set a refused value is named, not the config file it overrode."""
+    for item, words in (("learner.gamma=[0.5]", "learner.gamma: expected a number"),
+                        ("lr=abc", "learner.lr: expected a number"),
+                        ("seed=-1", "seed: must be an integer")):
+        with pytest.raises(ConfigError) as caught:
+            load_config("configs/marl/mappo_crossfire.yaml", [item])
+        assert str(caught.value).startswith(f"override {item!r}: {words}"), str(caught.value)
+    with pytest.raises(ConfigError, match=r"mappo_crossfire\.yaml: learner\.num_minibatches"):
+        load_config("configs/marl/mappo_crossfire.yaml", ["learner.num_envs=3"])
+
+
+def test_a_config_that_is_not_a_regular_file_is_named_as_such(tmp_path, capsys):
+    """`tabx train /dev/zero` or a folder: one line saying what it is (not "no such file")."""
+    for path, words in (("/dev/zero", "not a regular file"), (str(tmp_path), "a folder")):
+        argv = ["train", path, "--quiet"]
+        code, out, err = run_cli(capsys, argv)
+        assert_one_error(code, out, err, argv, path, rf"cannot read the config \({words}")

@@ -608,7 +608,24 @@ def load_config(path: str | Path, overrides: Sequence[str] = ()) -> TrainConfig:
     apply `key=value` overrides."""
     path = resolve_config(path)
     data = apply_overrides(read_config_file(path), overrides, source=str(path))
-    return config_from_dict(data, source=str(path))
+    try:
+        return config_from_dict(data, source=str(path))
+    except ConfigError as err:
+        raise _blame_override(err, str(path), overrides) from None
+
+
+def _blame_override(err: ConfigError, source: str, overrides: Sequence[str]) -> ConfigError:
+    """`err` (a value refused in the config as overridden) naming the override that set the
+    value, not the file; unchanged when no override set it."""
+    text = str(err)
+    inner = text[len(source) + 2:] if text.startswith(f"{source}: ") else text
+    paths = _field_paths()
+    for item in reversed(overrides):  # the last override of a key is the one that counts
+        key = item.partition("=")[0].strip()
+        key = paths[key][0] if "." not in key and len(paths.get(key, [])) == 1 else key
+        if inner.startswith(f"{key}: ") or inner.startswith(f"{key}["):
+            return ConfigError(f"override {item!r}: {inner}")
+    return err
 
 
 def read_config_file(path: str | Path) -> Any:
