@@ -53,6 +53,15 @@ def build_parser(registrars: Iterable[Registrar]) -> argparse.ArgumentParser:
     return parser
 
 
+def command_parser(parser: argparse.ArgumentParser, command: str | None
+                   ) -> argparse.ArgumentParser:
+    """The parser of `command` among `parser`'s subcommands (`parser` itself if none)."""
+    for action in parser._actions:  # argparse keeps its subparsers only here
+        if isinstance(action, argparse._SubParsersAction) and command in action.choices:
+            return action.choices[command]
+    return parser
+
+
 def build_route_parser(command: str, word: str, routes: Routes) -> argparse.ArgumentParser:
     """The parser of one route, `tabx COMMAND WORD ...`."""
     parser = argparse.ArgumentParser(prog=f"tabx {command}")
@@ -90,7 +99,9 @@ def run(argv: list[str] | None, registrars: Iterable[Registrar], routes: Routes 
             overrides = next((getattr(args, name) for name in OVERRIDE_LISTS
                               if isinstance(getattr(args, name, None), list)), None)
             if overrides is None or not all("=" in e and not e.startswith("-") for e in extra):
-                parser.error(f"unrecognized arguments: {' '.join(extra)}")
+                # The command's own usage (`tabx eval RUN_A RUN_B`), not the list of commands.
+                command_parser(parser, getattr(args, "command", None)).error(
+                    f"unrecognized arguments: {' '.join(extra)}")
             overrides.extend(extra)
     try:
         return int(args.func(args) or 0)

@@ -699,3 +699,11 @@ def test_a_config_that_is_not_a_regular_file_is_named_as_such(tmp_path, capsys):
         argv = ["train", path, "--quiet"]
         code, out, err = run_cli(capsys, argv)
         assert_one_error(code, out, err, argv, path, rf"cannot read the config \({words}")
+
+
+def test_an_extra_argument_shows_the_commands_own_usage(tmp_path, capsys):
+    """`tabx eval RUN_A RUN_B`: the usage of `tabx eval`, not the list of every command."""
+    code, out, err = run_cli(capsys, ["eval", str(tmp_path / "a"), str(tmp_path / "b")])
+    assert code == 2 and "usage: tabx eval" in err, err
+    last = err.strip().splitlines()[-1]
+    assert last == f"tabx eval: error: unrecognized arguments: {tmp_path / 'b'}", last
