@@ -112,7 +112,9 @@ class Checkpoints:
                  if path.is_file()}
         custom = {**(metadata or {}),
                   INTEGRITY_KEY: {"arrays": array_digests(item), "files": files}}
-        quiet = _SaveFailureRecords()
+        # A failed save's writer threads report themselves (each with a traceback): the caller
+        # gets the failure as one CheckpointError instead.
+        quiet = _MessageFilter("_SignalingThread.run() raised an exception")
         absl_logger = logging.getLogger("absl")
         absl_logger.addFilter(quiet)
         _quiet_abandoned_reads()
@@ -161,7 +163,15 @@ class Checkpoints:
         return meta
 
     def _custom_metadata(self, update: int) -> dict[str, Any]:
-        step = self._manager.metadata(int(update))
+        # Reading a step's metadata without its item's handler makes orbax warn, once per
+        # call, that it cannot restore the item: true, and not asked for here.
+        quiet = _MessageFilter("could not be restored. Please provide a `CheckpointHandler")
+        absl_logger = logging.getLogger("absl")
+        absl_logger.addFilter(quiet)
+        try:
+            step = self._manager.metadata(int(update))
+        finally:
+            absl_logger.removeFilter(quiet)
         return dict(getattr(step, "custom_metadata", None) or {})
 
     def _covered(self, update: int) -> list[tuple[str, Path]]:
@@ -305,12 +315,15 @@ class _AbandonedTasks(logging.Filter):
         return not any(word in text for word in ("orbax", "tensorstore", "zarr", "ocdbt"))
 
 
-class _SaveFailureRecords(logging.Filter):
-    """Drops orbax's reports of a failed save's writer threads (each with a traceback): the
-    caller gets the failure as one `CheckpointError`."""
+class _MessageFilter(logging.Filter):
+    """Drops the log records whose message contains `text`."""
+
+    def __init__(self, text: str):
+        super().__init__()
+        self.text = text
 
     def filter(self, record: logging.LogRecord) -> bool:
-        return "_SignalingThread.run() raised an exception" not in record.getMessage()
+        return self.text not in record.getMessage()
 
 
 _QUIETED = False
