@@ -707,3 +707,15 @@ def test_an_extra_argument_shows_the_commands_own_usage(tmp_path, capsys):
     assert code == 2 and "usage: tabx eval" in err, err
     last = err.strip().splitlines()[-1]
     assert last == f"tabx eval: error: unrecognized arguments: {tmp_path / 'b'}", last
+
+
+def test_envs_that_cannot_fit_in_memory_are_refused_before_the_run_folder(tmp_path, capsys):
+    """`learner.num_envs: 100000000`: one line with the memory it needs at least and what the
+    machine has, before a run folder exists (shapes only: nothing allocated or compiled)."""
+    argv = ["train", "marl/mappo_crossfire", "learner.num_envs=100000000",
+            f"run.dir={tmp_path / 'runs'}", "--quiet"]
+    code, out, err = run_cli(capsys, argv)
+    assert_one_error(code, out, err, argv, "learner.num_envs",
+                     r"100000000 envs x 512 steps need at least \d+\.\d GiB .*; this machine's "
+                     r"\w+ memory is \d+\.\d GiB")
+    assert not (tmp_path / "runs").exists()

@@ -22,7 +22,7 @@ from typing import TextIO
 
 from ued import compile_cache
 from ued.config import ConfigError, RaySection, TrainConfig
-from ued.experiment import check_devices, scenario_levels
+from ued.experiment import check_devices, check_memory, scenario_levels
 from ued.run_folder import (
     check_writable,
     config_change,
@@ -93,7 +93,8 @@ def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = Non
 def _check_start(driver: Driver, config: TrainConfig) -> None:
     """What is checked before a new run's folder exists: devices, scenarios, the driver."""
     check_devices(config)
-    scenario_levels(config)
+    env_config, levels = scenario_levels(config)
+    check_memory(config, env_config, levels[0])
     driver.check(config)
 
 
