@@ -94,7 +94,8 @@ def _check_start(driver: Driver, config: TrainConfig) -> None:
     """What is checked before a new run's folder exists: devices, scenarios, the driver."""
     check_devices(config)
     env_config, levels = scenario_levels(config)
-    check_memory(config, env_config, levels[0])
+    if not config.ray.enabled:  # a Ray run's learner and Explorers may live on other machines
+        check_memory(config, env_config, levels[0])
     driver.check(config)
 
 
