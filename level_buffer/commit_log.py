@@ -12,9 +12,11 @@ is one record. Numpy arrays travel as msgpack extension type 1 (dtype, shape, ra
 come back as arrays of the same dtype and shape; tuples come back as lists.
 
 `append` returns once the frame is on disk (flush + fsync): a record that `append` acknowledged
-survives a SIGKILL of the writer. A crash in the middle of an append leaves a torn last frame;
-`read` stops at the first frame that is short or fails its CRC and reports how many bytes it
-kept, and `CommitLog.reopen` truncates the file there before appending again.
+survives a SIGKILL of the writer. A group commit appends several records with `sync=False` and
+makes them durable with one `sync` before any of them is acknowledged. A crash in the middle
+of an append leaves a torn last frame; `read` stops at the first frame that is short or fails
+its CRC and reports how many bytes it kept, and `CommitLog.reopen` truncates the file there
+before appending again.
 """
 
 from __future__ import annotations
@@ -185,12 +187,18 @@ class CommitLog:
                 os.fsync(f.fileno())
         return cls(path, open(path, "ab"), len(contents.records)), contents
 
-    def append(self, record: Any) -> None:
-        """Write one record; returns when it is on disk."""
+    def append(self, record: Any, sync: bool = True) -> None:
+        """Write one record; returns when it is on disk. `sync=False`: written but not yet
+        durable, until the next `sync` (group commit: one fsync for several records)."""
         self._handle.write(frame(pack(record)))
+        self.records += 1
+        if sync:
+            self.sync()
+
+    def sync(self) -> None:
+        """Make every record written so far durable (flush + fsync)."""
         self._handle.flush()
         os.fsync(self._handle.fileno())
-        self.records += 1
 
     def close(self) -> None:
         if not self._handle.closed:

@@ -13,7 +13,9 @@ per update. A fresh learner is built for each algorithm (no compiled function is
 persistent compilation cache, if the user configured one, is switched off for the run), and the
 level batch is a jit argument, as in training. `--reference-like` trains with the reference's
 structure instead (see `reference_like`), to compare on the same machine at the same moment.
-`--matmul-dtype` sets `learner.matmul_dtype` (default: the config default, bfloat16). """
+`--matmul-dtype` sets `learner.matmul_dtype` (default: the config default, bfloat16).
+`--learners 1,2` runs the protocol once per learner-group size (tabx_bench.learner_group: N > 1
+in N processes of this machine), each with its reduction time per update. """
 
 from __future__ import annotations
 
@@ -44,6 +46,9 @@ class TrainBenchResult:
     updates: int
     devices: int = 1  # the envs were split over this many devices (data parallel)
     matmul_dtype: str = "float32"  # the networks' matmul inputs (learner.matmul_dtype)
+    learners: int = 1  # processes of the learner group (tabx_bench.learner_group)
+    reduce_s: float = 0.0  # cross-device reduction seconds per update (estimated beside it)
+    param_bytes: int = 0  # bytes of the parameters: what one gradient reduction sums
 
 
 def reference_like(learner: Any) -> Any:
@@ -84,16 +89,19 @@ def reference_like(learner: Any) -> Any:
 def run_train_bench(algorithm: str, scenario: str = "crossfire",
                     opponent: str = "heuristic:medium", num_envs: int = 128,
                     num_steps: int = 512, updates: int = 3,
-                    variant: str = "ours", matmul_dtype: str | None = None
-                    ) -> TrainBenchResult:
+                    variant: str = "ours", matmul_dtype: str | None = None,
+                    learners: int = 1) -> TrainBenchResult:
+    """The protocol of the module doc in this process; `learners` > 1: this process is one
+    member of a learner group that runs it together (tabx_bench.learner_group)."""
     # A cold compile, always: JAX decides once per process, at its first compilation, whether
     # to use a persistent cache, so switch it off before anything here compiles (and check
     # below that the update really compiled).
     cache = jax.config.jax_enable_compilation_cache
     jax.config.update("jax_enable_compilation_cache", False)
     try:
-        return _run_train_bench(algorithm, scenario, opponent, num_envs, num_steps, updates,
-                                variant, matmul_dtype)
+        result = _run_train_bench(algorithm, scenario, opponent, num_envs, num_steps,
+                                  updates, variant, matmul_dtype)
+        return dataclasses.replace(result, learners=learners)
     finally:
         jax.config.update("jax_enable_compilation_cache", cache)
 
@@ -145,9 +153,14 @@ def _run_train_bench(algorithm: str, scenario: str, opponent: str, num_envs: int
         jax.block_until_ready((state, metrics))
         times.append(time.perf_counter() - t0)
     median = statistics.median(times) if times else float("nan")
+    from tabx_bench.learner_group import param_bytes, per_update_reduction_s, reduction_s
+
+    reduce_s = (per_update_reduction_s(ppo, *reduction_s(learner, state.params, num_envs))
+                if learner_entry(algorithm).devices else 0.0)
     return TrainBenchResult(algorithm, variant, scenario, opponent, num_envs, num_steps, first,
                             median, num_envs * num_steps / median, updates,
-                            len(learner.learner_devices(num_envs)), ppo.matmul_dtype)
+                            len(learner.learner_devices(num_envs)), ppo.matmul_dtype,
+                            reduce_s=reduce_s, param_bytes=param_bytes(state.params))
 
 
 def bench_train(args: argparse.Namespace) -> int:
@@ -164,14 +177,24 @@ def bench_train(args: argparse.Namespace) -> int:
           f"{'; reference-like training structure' if args.reference_like else ''}",
           flush=True)
     print(f"{'algorithm':>9} {'first update s':>14} {'update s':>9} {'steps/s':>10} "
-          f"{'devices':>7} {'matmuls':>8}", flush=True)
+          f"{'devices':>7} {'matmuls':>8} {'learners':>8} {'reduce ms':>9}", flush=True)
     results = []
     for algorithm in args.algorithms:
-        r = run_train_bench(algorithm, args.scenario, args.opponent, args.num_envs,
-                            args.num_steps, args.updates, variant, args.matmul_dtype)
-        results.append(r)
-        print(f"{algorithm:>9} {r.first_update_s:>14.1f} {r.update_s:>9.2f} "
-              f"{r.steps_per_s:>10,.0f} {r.devices:>7} {r.matmul_dtype:>8}", flush=True)
+        for learners in args.learners:
+            options = dict(algorithm=algorithm, scenario=args.scenario,
+                           opponent=args.opponent, num_envs=args.num_envs,
+                           num_steps=args.num_steps, updates=args.updates, variant=variant,
+                           matmul_dtype=args.matmul_dtype)
+            if learners == 1:
+                r = run_train_bench(**options)
+            else:
+                from tabx_bench.learner_group import run_group
+
+                r = TrainBenchResult(**run_group(learners, options))
+            results.append(r)
+            print(f"{algorithm:>9} {r.first_update_s:>14.1f} {r.update_s:>9.2f} "
+                  f"{r.steps_per_s:>10,.0f} {r.devices:>7} {r.matmul_dtype:>8} "
+                  f"{r.learners:>8} {r.reduce_s * 1e3:>9.1f}", flush=True)
     if args.json:
         write_results(args.json, results)
     return 0
@@ -200,6 +223,8 @@ def _positive(text: str) -> int:
 
 def add_train_bench(which: argparse._SubParsersAction) -> None:
     """Add `train` to the `tabx bench` sub-commands (`which` = bench.add_subparsers(...))."""
+    from tabx_bench.arguments import int_list
+
     p = which.add_parser("train", help="learners' training throughput (env steps/s)")
     p.add_argument("--algorithms", type=_algorithms, default=["mappo", "ippo"],
                    help="comma-separated learners: mappo, ippo, iql, vdn, qmix "
@@ -218,6 +243,9 @@ def add_train_bench(which: argparse._SubParsersAction) -> None:
     p.add_argument("--matmul-dtype", choices=MATMUL_DTYPES, default=None,
                    help="the networks' matmul inputs (learner.matmul_dtype; default: the "
                         "config default, bfloat16)")
+    p.add_argument("--learners", type=int_list(1), default=[1],
+                   help="comma-separated learner-group sizes: 1 runs here, N > 1 in N "
+                        "processes of this machine sharing its cores (default 1)")
     p.add_argument("--json", help="also write results as JSON lines to this file")
     p.set_defaults(func=bench_train)
 

@@ -53,6 +53,7 @@ DEFAULT_CONFIG = "ued/quickstart"  # a shipped config (ued.config_files)
 @dataclass
 class UEDBenchResult:
     driver: str  # "local" | "ray" (asynchronous) | "ray-deterministic" (the local schedule)
+    # | "ray-continuous" (continuous scoring)
     explorers: int  # Explorer actors (0 on the local driver and for the learner-scores case)
     method: str
     steps: int  # timed curriculum steps
@@ -65,6 +66,7 @@ class UEDBenchResult:
     rescored: int = 0
     branches: dict[str, int] = field(default_factory=dict)
     step_seconds: list[float] = field(default_factory=list)  # per timed step (not async)
+    learners: int = 1  # learner actors of the group (`ray.learners`)
 
     @property
     def trained_per_s(self) -> float:
@@ -81,7 +83,10 @@ class UEDBenchResult:
         explorers = f"{self.explorers} explorer{'' if self.explorers == 1 else 's'}"
         if self.driver == "ray-deterministic":
             return f"ray, {explorers}, deterministic"
-        return f"ray, {explorers}"
+        group = f", {self.learners} learners" if self.learners > 1 else ""
+        if self.driver == "ray-continuous":
+            return f"ray, {explorers}, continuous{group}"
+        return f"ray, {explorers}{group}"
 
     def to_json(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)
@@ -101,8 +106,9 @@ class Warmup:
     """Untimed steps: at least `steps`, and until every branch of the curriculum has run once
     (so that each of its programs is compiled), at most `patience` times `steps`."""
 
-    def __init__(self, run: UEDRun, steps: int, patience: int = 10):
-        self.expected = set(run.curriculum.branches)
+    def __init__(self, run: UEDRun, steps: int, patience: int = 10,
+                 branches: Any = None):
+        self.expected = set(run.curriculum.branches if branches is None else branches)
         self.seen: set = set()
         self.steps, self.limit, self.count = steps, steps * patience, 0
 
@@ -155,15 +161,32 @@ class RayStepper:
 
         self.ray, self.config = ray, config
         self.workers = start_workers(ray, config, stream)
-        self.driver = "ray-deterministic" if config.ray.deterministic else "ray"
+        continuous = config.ray.schedule == "continuous"
+        self.driver = ("ray-deterministic" if config.ray.deterministic else
+                       "ray-continuous" if continuous else "ray")
         # One RemoteService for the run and the schedule: it numbers the state-changing calls.
         service = RemoteService(ray, self.workers.service, ActorDeaths(None))
         self.run = UEDRun(config, service, ExplorerPool(ray, self.workers.scorers()))
         self.key, k_init = jax.random.split(jax.random.key(config.seed))
         ray.get(self.workers.learner.init.remote(k_init))
         self.learner = RemoteLearner(ray, self.workers.learner)
-        self.schedule = AsyncRun(ray, config, self.run, self.learner, self.workers, service)
+        if continuous:
+            from workers.continuous import ContinuousRun
+
+            self.schedule = ContinuousRun(ray, config, self.run, self.learner, self.workers,
+                                          service)
+        else:
+            self.schedule = AsyncRun(ray, config, self.run, self.learner, self.workers, service)
         self.index = 0
+
+    @property
+    def branches(self) -> Any:
+        """The branches its steps take (continuous scoring: replay steps only)."""
+        if getattr(self.schedule, "scores_apart", False):
+            from ued.curricula import Branch
+
+            return {Branch.REPLAY}
+        return None
 
     def step(self) -> Any:
         self.key, k_step = jax.random.split(self.key)
@@ -180,12 +203,14 @@ class RayStepper:
         self.ray.get(self.workers.learner.version.remote())
 
     def close(self) -> None:
+        from workers.learner_group import LearnerGroup
+
         for actor in self.workers.all():
-            self.ray.kill(actor)
+            actor.kill(self.ray) if isinstance(actor, LearnerGroup) else self.ray.kill(actor)
 
 
 def _warm_up(stepper: LocalStepper | RayStepper, warmup: int) -> None:
-    warm = Warmup(stepper.run, warmup)
+    warm = Warmup(stepper.run, warmup, branches=getattr(stepper, "branches", None))
     while not warm.done:
         warm.saw(stepper.step())
     if isinstance(stepper, RayStepper):
@@ -199,7 +224,8 @@ def _result(stepper: LocalStepper | RayStepper, branches: Counter,
     steps = sum(branches.values())
     counts = {b.name.lower(): n for b, n in branches.items()}
     explorers = len(stepper.workers.explorers) if isinstance(stepper, RayStepper) else 0
-    if stepper.driver != "ray":  # every step waited for its work: the local accounting
+    if stepper.driver not in ("ray", "ray-continuous"):  # every step waited: the local
+        # accounting
         trained, explored = _steps_of(stepper.run, config, branches)
         busy = 1.0 if stepper.driver == "local" else float("nan")
         return UEDBenchResult(stepper.driver, explorers, config.ued.method, steps, seconds,
@@ -207,12 +233,12 @@ def _result(stepper: LocalStepper | RayStepper, branches: Counter,
                               wait_for_levels_s=0.0, branches=counts, step_seconds=step_seconds)
     stats = stepper.schedule.stats
     return UEDBenchResult(
-        "ray", explorers, config.ued.method, steps, seconds, stats.trained_steps,
+        stepper.driver, explorers, config.ued.method, steps, seconds, stats.trained_steps,
         stats.explored_steps + stepper.run.sfl_scoring_steps,
         learner_busy_fraction=stats.learner_busy_s / seconds,
         wait_for_levels_s=stats.wait_for_levels_s,
         staleness={str(k): v for k, v in sorted(stats.staleness.items())},
-        rescored=stats.rescored, branches=counts)
+        rescored=stats.rescored, branches=counts, learners=config.ray.learners)
 
 
 def bench_interleaved(steppers: list[LocalStepper | RayStepper], warmup: int,
@@ -254,10 +280,12 @@ def bench_async(ray: Any, config: TrainConfig, warmup: int, steps: int,
 
 def run_ued_bench(config: TrainConfig, explorers: list[int], warmup: int, steps: int,
                   local: bool = True, stream: TextIO | None = None,
-                  restarts: list[RestartResult] | None = None) -> list[UEDBenchResult]:
+                  restarts: list[RestartResult] | None = None,
+                  learners: tuple[int, ...] = (1,)) -> list[UEDBenchResult]:
     """Every setting in turn (see the module doc); a line per setting on `stream`. With a
     `restarts` list, an Explorer's restart is timed too (compilation cache off, then on) and
-    appended to it."""
+    appended to it. `learners`: the asynchronous settings run with each learner-group size
+    (`ray.learners`)."""
     from workers.ray_driver import connect
 
     stream = sys.stderr if stream is None else stream
@@ -275,7 +303,9 @@ def run_ued_bench(config: TrainConfig, explorers: list[int], warmup: int, steps:
         return UEDBenchResult(driver, n, "", 1, 1, 0, 0, 0, 0).label
 
     labels = ([label("local", 0), label("ray-deterministic", 0)] if local else []) + [
-        label("ray", n) for n in explorers]
+        label("ray-continuous" if config.ray.schedule == "continuous" else "ray", n)
+        + (f", {g} learners" if g > 1 else "") for g in learners
+        for n in explorers]
     stream.write(f"bench ued: {config.ued.method}, at least {warmup} warm-up + {steps} timed "
                  f"steps of {config.learner.steps_per_update:,} env steps; settings: "
                  f"{'; '.join(labels)}\n")
@@ -284,11 +314,14 @@ def run_ued_bench(config: TrainConfig, explorers: list[int], warmup: int, steps:
         # A Ray started here gets a logical CPU per actor that reserves one (a learner and
         # the most Explorers asked for), whatever the core count: the bench measures sharing.
         config = dataclasses.replace(config, ray=dataclasses.replace(
-            config.ray, num_cpus=max([0, *explorers]) + 1))
+            config.ray, num_cpus=max([0, *explorers]) + max(learners)))
 
-    def setting(n: int, deterministic: bool) -> TrainConfig:
+    def setting(n: int, deterministic: bool, group: int = 1) -> TrainConfig:
+        # The deterministic schedule is the sequential one (whatever ray.schedule says).
+        schedule = "sequential" if deterministic else config.ray.schedule
         return dataclasses.replace(config, ray=dataclasses.replace(
-            config.ray, enabled=True, explorers=n, deterministic=deterministic)).validate()
+            config.ray, enabled=True, explorers=n, deterministic=deterministic,
+            schedule=schedule, learners=group)).validate()
 
     ray, connected_here = connect(config.ray)
     try:
@@ -305,10 +338,12 @@ def run_ued_bench(config: TrainConfig, explorers: list[int], warmup: int, steps:
                     stepper.close()
             for result in results:
                 report(result, started)
-        for n in explorers:
-            started = time.perf_counter()
-            results.append(bench_async(ray, setting(n, False), warmup, steps, stream))
-            report(results[-1], started)
+        for group in learners:
+            for n in explorers:
+                started = time.perf_counter()
+                results.append(bench_async(ray, setting(n, False, group), warmup, steps,
+                                           stream))
+                report(results[-1], started)
         if restarts is not None:
             restarts += [bench_restart(ray, config, cache, stream) for cache in (False, True)]
     finally:
@@ -331,10 +366,12 @@ class RestartResult:
 
 
 def bench_restart(ray: Any, config: TrainConfig, compile_cache: bool,
-                  stream: TextIO) -> RestartResult:
+                  stream: TextIO, cache_dir: str | None = None) -> RestartResult:
     """Start an Explorer, score a batch, kill its process (`ray.kill`, restart allowed), and
     time its return. With `compile_cache` the actor reads and writes a fresh persistent
-    compilation cache (so the restart finds what the first life compiled), else none."""
+    compilation cache (so the restart finds what the first life compiled), else none;
+    `cache_dir` names the cache folder instead of a fresh one (the tests pass their
+    session's, whose programs are compiled already: the same steps, without the compile)."""
     import tempfile
 
     from workers.actors import ExplorerActor, LevelServiceActor, ParamsRef
@@ -342,7 +379,7 @@ def bench_restart(ray: Any, config: TrainConfig, compile_cache: bool,
 
     with tempfile.TemporaryDirectory(prefix="tabx-restart-cache-") as cache:
         env = actor_env(False)
-        env["TABX_COMPILE_CACHE_DIR"] = cache if compile_cache else "off"
+        env["TABX_COMPILE_CACHE_DIR"] = (cache_dir or cache) if compile_cache else "off"
         setting = dataclasses.replace(config, run=dataclasses.replace(
             config.run, compile_cache=compile_cache))
 
@@ -474,9 +511,12 @@ def bench_ued(args: argparse.Namespace) -> int:
         config = load_config(args.config, overrides)
         if not config.ued.enabled:
             raise ConfigError(f"{args.config}: ued.method: tabx bench ued needs a UED config")
+        if args.simulate:
+            return bench_simulated(config, args)
         restarts: list[RestartResult] | None = [] if args.restart else None
         results = run_ued_bench(config, args.explorers, args.warmup, args.steps,
-                                local=not args.no_local, restarts=restarts)
+                                local=not args.no_local, restarts=restarts,
+                                learners=tuple(args.learners))
     except ConfigError as err:
         raise UserError(str(err)) from None
     print(format_table(results))
@@ -497,6 +537,32 @@ def bench_ued(args: argparse.Namespace) -> int:
     return 0
 
 
+def bench_simulated(config: TrainConfig, args: argparse.Namespace) -> int:
+    """`--simulate`: the control plane with stand-in Explorers (tabx_bench.ued_sim)."""
+    from tabx_bench.ued_sim import format_sim_table, plot_sim, run_simulation
+
+    results = run_simulation(config, args.simulate, args.batch_s, args.learner_s, args.seconds,
+                             args.per_process)
+    print(format_sim_table(results))
+    if args.json:
+        atomic_write_text(Path(args.json), "".join(json.dumps(r.to_json()) + "\n"
+                                                   for r in results))
+    if args.plot:
+        plot_sim(results, args.plot)
+        print(f"plot: {args.plot}")
+    return 0
+
+
+def positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return value
+
+
 def add_ued_bench(which: argparse._SubParsersAction) -> None:
     """Add `ued` to the `tabx bench` sub-commands."""
     p = which.add_parser("ued", help="UED throughput: local driver and Ray by Explorer count")
@@ -509,16 +575,32 @@ def add_ued_bench(which: argparse._SubParsersAction) -> None:
                    help="untimed steps first: start-up, compilation (default 4)")
     p.add_argument("--steps", type=int_at_least(1), default=16,
                    help="timed curriculum steps per setting (default 16)")
+    p.add_argument("--learners", type=int_list(1), default=[1],
+                   help="comma-separated learner-group sizes (ray.learners) of the "
+                        "asynchronous settings (default 1)")
     p.add_argument("--no-local", action="store_true", help="skip the local driver")
     p.add_argument("--restart", action="store_true",
                    help="also time the restart of an Explorer and of the LevelService (with "
                         "50 logged commits to replay) after a kill, without and with the "
                         "compilation cache")
+    p.add_argument("--simulate", type=int_list(1), metavar="N,...",
+                   help="instead: the control plane with these counts of stand-in Explorers "
+                        "(sleeping --batch-s per batch) on the continuous schedule, with the "
+                        "real driver, level service and commit log")
+    p.add_argument("--batch-s", type=positive_float, default=0.5,
+                   help="--simulate: seconds a stand-in Explorer takes per batch (default 0.5)")
+    p.add_argument("--learner-s", type=positive_float, default=0.5,
+                   help="--simulate: seconds the stand-in learner takes per step (default 0.5)")
+    p.add_argument("--seconds", type=positive_float, default=20.0,
+                   help="--simulate: timed seconds per Explorer count (default 20)")
+    p.add_argument("--per-process", type=int_at_least(1), default=8,
+                   help="--simulate: stand-in Explorers per actor process (default 8)")
     p.add_argument("--address", help="join a running Ray cluster (auto, or HOST:PORT)")
     p.add_argument("--json", help="also write results as JSON lines to this file")
     p.add_argument("--plot", help="also draw trained/explored env steps/s to this PNG")
     p.set_defaults(func=bench_ued)
 
 
-__all__ = ["RestartResult", "UEDBenchResult", "add_ued_bench", "bench_restart", "format_table",
+__all__ = ["RestartResult", "UEDBenchResult", "add_ued_bench", "bench_restart", "bench_simulated",
+           "format_table",
            "ray_overhead", "run_ued_bench"]

@@ -12,6 +12,7 @@
     tabx eval payoff                                             tabx_ued.analysis_commands
     tabx analyse value-error                                     tabx_ued.analysis_commands
     tabx runs status | buffer                                    tabx_ued.run_folder_commands
+    tabx sweep SPEC, tabx sweep report                           tabx_ued.sweep_commands
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from tabx_ued import (
     rollout,
     run_folder_commands,
     scenarios,
+    sweep_commands,
     train_eval_commands,
 )
 
@@ -44,11 +46,14 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     levels_commands.add_parser(subparsers)
     analysis_commands.add_plot_parser(subparsers)
     analysis_commands.add_analyse_parser(subparsers)
+    sweep_commands.add_parser(subparsers)
 
 
-# `tabx eval WORD ...` routes beside `tabx eval RUN_DIR`.
+# `tabx eval WORD ...` routes beside `tabx eval RUN_DIR`; `tabx sweep report` beside
+# `tabx sweep SPEC`.
 ROUTES = {("eval", "heuristics"): heuristics.add_route_parser,
-          ("eval", "payoff"): analysis_commands.add_payoff_route_parser}
+          ("eval", "payoff"): analysis_commands.add_payoff_route_parser,
+          ("sweep", "report"): sweep_commands.add_route_parser}
 
 
 __all__ = ["ROUTES", "add_commands"]

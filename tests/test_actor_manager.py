@@ -228,3 +228,82 @@ def test_a_learner_killed_by_the_memory_monitor_stops_the_run_with_the_resume_co
     assert "Traceback" not in err and "unexpected" not in err
     record = json.loads((run_dir / RAY_RECORD).read_text())
     assert record["status"] == "stopped" and "learner died" in record["error"]
+
+
+class ServiceKilled:
+    """A level service (with its commit log in `folder`) whose process dies during its group
+    commits numbered `kill_at`, before logging them; Ray restarts it: its constructor again,
+    which restores every logged call."""
+
+    def __init__(self, config: Any, folder: str, kill_at: set[int]):
+        from workers.actors import LevelServiceActor
+
+        self.make = lambda: LevelServiceActor(config, folder, "session")
+        self.obj, self.kill_at = self.make(), kill_at
+        self.groups, self.restarting, self.restarts = 0, False, 0
+
+    def ready(self) -> bool:
+        if self.restarting:
+            self.restarting = False
+            self.restarts += 1
+            self.obj = self.make()
+            raise exceptions.ActorUnavailableError("The actor is restarting", None)
+        return True
+
+    def __getattr__(self, name: str) -> Any:
+        if name != "apply_many":
+            return getattr(self.obj, name)
+
+        def call(*args: Any) -> Any:
+            self.groups += 1
+            if self.groups in self.kill_at:
+                self.restarting = True
+                raise exceptions.ActorDiedError()
+            return self.obj.apply_many(*args)
+        return call
+
+
+def test_continuous_scoring_commits_every_batch_once_when_an_explorer_and_the_service_die(
+        tmp_path):
+    # ACCEL on the continuous schedule; the Explorer is killed during its third batch, the
+    # service during its second and fifth group commits: the lost batch is re-issued, the
+    # lost group sent again (numbered: nothing applied twice), and every batch is committed
+    # once. (With real SIGKILLs: tests/test_ray_driver.py, -m slow.)
+    from level_buffer import Source
+    from workers.actors import ExplorerActor, LearnerActor
+    from workers.continuous import ContinuousRun
+    from workers.ray_driver import ExplorerPool, RemoteLearner, Workers
+    from workers.ray_restarts import RemoteService
+    from workers.ued_step import UEDRun
+
+    config = ued_config("accel", **{
+        "ray.enabled": "true", "ray.explorers": 1, "ray.max_inflight": 2,
+        "ray.schedule": "continuous", "ued.buffer_size": 32, "ued.min_fill_ratio": 0.25})
+    ray = FakeRay()
+    learner_actor = LearnerActor(config)
+    explorer_actor = ExplorerActor(config, learner_actor.learner)
+    explorer_actor.cache.fetch = ray.get
+    explorer = MemoryKilled(explorer_actor, "score_levels", {3}, "e0" * 14)
+    service_actor = ServiceKilled(config, str(tmp_path / "levels"), {2, 5})
+    workers = Workers(Handle(service_actor, "5e" * 14), Handle(learner_actor, "1e" * 14),
+                      [Handle(explorer, "e0" * 14)], None, 0.0)
+    learner_actor.init(jax.random.key(0))
+    out = io.StringIO()
+    service = RemoteService(ray, workers.service, ActorDeaths(out))
+    run = UEDRun(config, service, ExplorerPool(ray, workers.scorers()), [])
+    schedule = ContinuousRun(ray, config, run, RemoteLearner(ray, workers.learner), workers,
+                             service)
+    key = jax.random.key(config.seed)
+    for step in range(6):
+        key, k_step = jax.random.split(key)
+        assert schedule.step(step, k_step)[0].name == "REPLAY"
+    schedule.drain()
+    assert explorer.restarts == 1 and service_actor.restarts == 2, out.getvalue()
+    assert service.actors.deaths.count == {"explorer-0": 1, "service": 2}
+    assert schedule.stats.reissued == 1
+    committed = schedule.stats.committed
+    assert committed >= 6 and schedule.batches == dict.fromkeys(range(schedule.issued),
+                                                                "committed")
+    buffer = service_actor.obj.buffer
+    assert buffer.stats["insert_attempts"] == 4 * committed  # none lost, none twice
+    assert int(Source.MUTATION) in set(buffer.column("source").tolist())  # ACCEL's children

@@ -152,6 +152,34 @@ def test_a_call_sent_again_after_a_restart_is_answered_not_applied_twice(tmp_pat
         restarted.apply(5, "replay", 2)
 
 
+def test_a_group_commit_applies_its_calls_in_order_with_one_fsync(tmp_path, config,
+                                                                   monkeypatch):
+    # Three numbered inserts in one call (their levels passed flat, as Ray resolves them): one
+    # fsync for the group; a restart has all three; the group sent again is answered from the
+    # first application, one already applied call inside it too.
+    from workers.durable_service import Slot
+
+    folder = tmp_path / "levels"
+    service = LevelServiceActor(config, str(folder), "run-a")
+    syncs = []
+    sync = CommitLog.sync
+    monkeypatch.setattr(CommitLog, "sync", lambda self: (syncs.append(1), sync(self)))
+    batches = [service.fresh(jax.random.key(i), 4) for i in range(3)]
+    first = service.apply(1, "insert", batches[0], np.arange(4.0), np.ones(4), 0, 0)
+    assert len(syncs) == 1
+    calls = [(seq, "insert", (Slot(i), np.arange(4.0) + seq, np.ones(4), 0, 0), {})
+             for i, seq in enumerate((1, 2, 3))]
+    results = service.apply_many(calls, *batches)
+    assert len(syncs) == 2 and service.seq == 3
+    assert results[0].ids.tolist() == first.ids.tolist()  # call 1: answered, not applied again
+    assert service.buffer.stats["insert_attempts"] == 12
+    restarted = LevelServiceActor(config, str(folder), "run-a")
+    assert restarted.seq == 3 and restarted.buffer.stats["insert_attempts"] == 12
+    again = restarted.apply_many(calls, *batches)
+    assert [r.ids.tolist() for r in again] == [r.ids.tolist() for r in results]
+    assert restarted.buffer.stats["insert_attempts"] == 12
+
+
 def test_a_torn_last_record_is_an_unacknowledged_call_and_is_cut_off(tmp_path, config):
     folder = tmp_path / "levels"
     service = LevelServiceActor(config, str(folder), "run-a")

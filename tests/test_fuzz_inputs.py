@@ -634,6 +634,30 @@ def test_mutated_checkpoint_restores_or_is_one_checkpoint_error(finished, tmp_pa
     assert (step.checkpoint is None) == restored
 
 
+def test_a_step_metadata_file_orbax_rejects_is_one_checkpoint_error(finished, tmp_path):
+    """A flipped byte in a key of step 4's `_CHECKPOINT_METADATA` (JSON that orbax's parser
+    refuses as it opens the checkpoints, for every step at once): the folder still opens,
+    step 4 is a CheckpointError naming it in `restore` and in the check, and step 2 restores
+    (resume's step before). The mutation test above meets this case only by chance."""
+    run = tmp_path / "run"
+    shutil.copytree(finished, run)
+    metadata = run / CHECKPOINT_DIR / str(STEPS) / "_CHECKPOINT_METADATA"
+    text = metadata.read_text()
+    assert '"init_timestamp_nsecs"' in text
+    metadata.write_text(text.replace('"init_timestamp_nsecs"', '"init_timestamp_nsecx"'))
+    from ued.experiment import learner_for
+
+    template = learner_for(read_run_config(run)).init(jax.random.key(0))
+    with Checkpoints(run / CHECKPOINT_DIR, create=False) as checkpoints:
+        assert checkpoints.all() == [2, STEPS]
+        with pytest.raises(CheckpointError, match=re.escape(
+                f"{run / CHECKPOINT_DIR / str(STEPS)}: cannot be restored (ValueError: ")):
+            checkpoints.restore(template, STEPS)
+        assert checkpoints.restore(template, 2)[2] == 2
+    steps = {c.step: c for c in check_run_folder(run)}
+    assert steps[2].intact and "cannot be restored" in steps[STEPS].checkpoint
+
+
 # --- nothing at exit ---------------------------------------------------------------------------
 
 

@@ -48,7 +48,9 @@ def test_shipped_configs_resolve_by_name_folder_or_stem(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # names do not depend on the working directory
     names = list_configs()
     assert "ued/quickstart" in names and "marl/mappo_crossfire" in names
-    assert len(names) == len(list((ROOT / "configs").rglob("*.yaml")))
+    sweeps = list((ROOT / "configs" / "sweeps").glob("*.yaml"))
+    assert sweeps and not any(name.startswith("sweeps/") for name in names)
+    assert len(names) == len(list((ROOT / "configs").rglob("*.yaml"))) - len(sweeps)
     quickstart = (ROOT / "configs" / "ued" / "quickstart.yaml").resolve()
     for text in ("quickstart", "ued/quickstart", "ued/quickstart.yaml", "quickstart.yaml"):
         assert resolve_config(text).resolve() == quickstart

@@ -113,6 +113,49 @@ def test_a_lost_node_moves_its_explorer_and_the_run_finishes(tmp_path):
         cluster.shutdown()
 
 
+@pytest.mark.slow  # tests/test_learner_group.py covers the same update by default
+def test_two_learners_on_two_nodes_train_as_one_learner_with_two_devices(tmp_path):
+    """`ray.learners: 2` on a two-node cluster: one learner per node (the group's placement
+    group spreads CPU learners), one JAX process group over both; IPPO + ACCEL, deterministic,
+    equals the local run with 2 devices bit for bit."""
+    import jax
+    import numpy as np
+
+    from ued.checkpoint import Checkpoints
+    from ued.run_folder import CHECKPOINT_DIR
+    from workers.ued_step import UEDRun
+
+    base = {"algorithm": "ippo"}
+    local = train(ued_config("accel", **base), run_dir=tmp_path / "local", stream=io.StringIO(),
+                  max_updates=3)
+    cluster = Cluster(initialize_head=True, head_node_args={
+        "num_cpus": 2, "include_dashboard": False, "object_store_memory": 96 * 2**20})
+    try:
+        cluster.add_node(num_cpus=1, object_store_memory=96 * 2**20)
+        cluster.wait_for_nodes(timeout=60)
+        ray.init(address=cluster.address, logging_level="ERROR")
+        nodes = {n["NodeID"] for n in ray.nodes() if n["Alive"]}
+        config = ued_config("accel", **base, **{
+            "ray.enabled": "true", "ray.deterministic": "true", "ray.explorers": 0,
+            "ray.learners": 2})
+        remote = train(config, run_dir=tmp_path / "two-nodes", stream=io.StringIO(),
+                       max_updates=3)
+        record = json.loads((remote / RAY_RECORD).read_text())
+        assert set(record["learner_nodes"]) == nodes  # one learner per node
+    finally:
+        ray.shutdown()
+        cluster.shutdown()
+    template = UEDRun.local(ued_config("accel", **base))[1].init(jax.random.key(0))
+    states = []
+    for run_dir in (local, remote):
+        with Checkpoints(run_dir / CHECKPOINT_DIR) as checkpoints:
+            states.append(checkpoints.restore(template))
+    (state_a, _, step_a), (state_b, _, step_b) = states
+    assert step_a == step_b == 3
+    for a, b in zip(jax.tree.leaves(state_a), jax.tree.leaves(state_b), strict=True):
+        assert np.array_equal(np.asarray(a), np.asarray(b))
+
+
 def free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))

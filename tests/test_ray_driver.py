@@ -45,6 +45,19 @@ def local_ray():
     ray.shutdown()
 
 
+# The deterministic ACCEL tests compare their Ray runs with this one local run (7 steps,
+# checkpoints and level snapshots after steps 4 and 7): one reference run for the module.
+ACCEL_STEPS = 7
+ACCEL_CONFIG = {"run.checkpoint_every": 4}
+
+
+@pytest.fixture(scope="module")
+def local_accel(tmp_path_factory):
+    """The local driver's uninterrupted ACCEL run (read only: tests compare with it)."""
+    return train(ued_config("accel", **ACCEL_CONFIG), run_dir=tmp_path_factory.mktemp(
+        "local-accel") / "local", stream=io.StringIO(), max_updates=ACCEL_STEPS)
+
+
 def ray_config(method: str, **overrides):
     return ued_config(method, **{"ray.enabled": "true", **overrides})
 
@@ -142,6 +155,10 @@ def test_ray_settings_are_checked():
         ray_config("dr", **{"ray.chaos_kill_every_s": -1})
     with pytest.raises(ConfigError, match="ray.chaos_roles: must be a comma-separated list"):
         ray_config("dr", **{"ray.chaos_roles": "explorer,learner"})
+    with pytest.raises(ConfigError, match="ray.schedule: must be one of sequential, continuous"):
+        ray_config("dr", **{"ray.schedule": "eager"})
+    with pytest.raises(ConfigError, match="ray.schedule: continuous scoring runs beside"):
+        ray_config("dr", **{"ray.schedule": "continuous", "ray.deterministic": "true"})
 
 
 def test_a_run_that_cannot_be_placed_is_refused(tmp_path):
@@ -190,6 +207,10 @@ def test_ued_bench_cli_rejects_bad_arguments(capsys):
     with pytest.raises(SystemExit) as exit_:
         main(["bench", "ued", "--steps", "0"])
     assert exit_.value.code == 2 and "--steps" in capsys.readouterr().err
+    for bad in (["--simulate", "0,8"], ["--simulate", "8", "--batch-s", "0"]):
+        with pytest.raises(SystemExit) as exit_:
+            main(["bench", "ued", *bad])
+        assert exit_.value.code == 2 and bad[-2] in capsys.readouterr().err
     assert main(["bench", "ued", "configs/marl/mappo_grid.yaml"]) == 2
     assert "ued.method: tabx bench ued needs a UED config" in capsys.readouterr().err
 
@@ -275,17 +296,20 @@ def test_an_explorer_killed_mid_batch_restarts_and_its_batches_are_reissued(tmp_
         os.kill(killed[0], 0)  # the process really died
 
 
-def test_chaos_kills_leave_the_deterministic_run_equal_to_the_local_one(tmp_path):
+def test_chaos_kills_leave_the_deterministic_run_equal_to_the_local_one(tmp_path,
+                                                                       local_accel):
     # Every 2 steps chaos kills the next of service, explorer-0, explorer-1 (Ray's kill, as a
     # user's cluster would see it): the run still equals the local driver's, byte for byte.
+    # With snapshots every 4 steps the service comes back from the start and its log (after
+    # step 2), from the snapshot of the step just done (4), and from a snapshot and its log (6).
     method = "accel"
-    local = train(ued_config(method), run_dir=tmp_path / "local", stream=io.StringIO(),
-                  max_updates=STEPS + 1)
+    local = local_accel
     out = io.StringIO()
     remote = train(ray_config(method, **{"ray.deterministic": "true", "ray.explorers": 2,
                                          "ray.chaos_kill_every": 2,
-                                         "ray.chaos_roles": "explorer,service"}),
-                   run_dir=tmp_path / "chaos", stream=out, max_updates=STEPS + 1)
+                                         "ray.chaos_roles": "explorer,service",
+                                         **ACCEL_CONFIG}),
+                   run_dir=tmp_path / "chaos", stream=out, max_updates=ACCEL_STEPS)
     record = json.loads((remote / RAY_RECORD).read_text())
     assert record["mode"] == "deterministic" and set(record["placement"]) == {
         "service", "learner", "explorer-0", "explorer-1"}
@@ -300,7 +324,7 @@ def test_chaos_kills_leave_the_deterministic_run_equal_to_the_local_one(tmp_path
     snapshots = sorted(p.name for p in (local / LEVELS_DIR).iterdir())
     assert any(name.endswith(".msgpack") for name in snapshots)  # the buffer's
     # The same snapshots, and the service's commit log since the last one (empty).
-    last = STEPS + 1
+    last = ACCEL_STEPS
     assert sorted(p.name for p in (remote / LEVELS_DIR).iterdir()) == sorted(
         [*snapshots, LOG_NAME.format(last)])
     assert read(remote / LEVELS_DIR / LOG_NAME.format(last)).records == []
@@ -309,57 +333,28 @@ def test_chaos_kills_leave_the_deterministic_run_equal_to_the_local_one(tmp_path
                                                             ).read_bytes(), name
 
 
-def test_a_running_ray_run_can_be_inspected_from_another_process(tmp_path):
-    from tabx_ued.cli import main
-
-    run_dir = tmp_path / "live"
-    seen = {}
-
-    def look(done, train_state, values):
-        if done == 3:  # the run is going: ask from outside, as a user would
-            for what in ("buffer", "status"):
-                seen[what] = subprocess.run(
-                    [sys.executable, "-m", "tabx_ued", "runs", what, str(run_dir)],
-                    capture_output=True, text=True, timeout=120)
-
-    config = ray_config("robust_plr", **{"ray.explorers": 1, "run.log_every": 1})
-    train(config, run_dir=run_dir, stream=io.StringIO(), max_updates=5, callback=look)
-    buffer = seen["buffer"]
-    assert buffer.returncode == 0, buffer.stderr[-2000:]
-    assert f"{run_dir} (live): " in buffer.stdout and " / 8 levels" in buffer.stdout
-    assert "policy versions:" in buffer.stdout  # the summary of tabx buffer inspect
-    status = seen["status"]
-    assert status.returncode == 0, status.stderr[-2000:]
-    assert f"{run_dir}: running; asynchronous schedule; step 3 of 10" in status.stdout
-    assert "explorer-0" in status.stdout and "learner" in status.stdout
-    # Over: the record says so, and the live buffer points to the snapshots.
-    record = json.loads((run_dir / RAY_RECORD).read_text())
-    assert record["status"] == "finished" and record["steps"] == [0, 5]
-    assert main(["runs", "buffer", str(run_dir)]) == 2
-    assert main(["runs", "status", str(tmp_path / "nowhere")]) == 2
-
-
-def test_a_ray_run_resumed_with_other_explorers_equals_an_uninterrupted_local_run(tmp_path):
-    # 3 steps on 2 Explorers, then 3 more on 1 (as `tabx train --resume RUN --ray
-    # ray.explorers=1` does), deterministic: the local driver's 6 steps, byte for byte.
+def test_a_ray_run_resumed_with_other_explorers_equals_an_uninterrupted_local_run(
+        tmp_path, local_accel):
+    # 3 steps on 2 Explorers, then 4 more on 1 (as `tabx train --resume RUN --ray
+    # ray.explorers=1` does), deterministic: the local driver's 7 steps, byte for byte.
     import dataclasses
 
     method = "accel"
-    local = train(ued_config(method), run_dir=tmp_path / "local", stream=io.StringIO(),
-                  max_updates=STEPS)
-    config = ray_config(method, **{"ray.deterministic": "true", "ray.explorers": 2})
+    local = local_accel
+    config = ray_config(method, **{"ray.deterministic": "true", "ray.explorers": 2,
+                                   **ACCEL_CONFIG})
     remote = train(config, run_dir=tmp_path / "ray", stream=io.StringIO(), max_updates=3)
     fewer = dataclasses.replace(config.ray, explorers=1)
-    train(run_dir=remote, resume=True, ray=fewer, stream=io.StringIO(), max_updates=3)
+    train(run_dir=remote, resume=True, ray=fewer, stream=io.StringIO(), max_updates=4)
     record = json.loads((remote / RAY_RECORD).read_text())
-    assert record["steps"] == [3, STEPS] and set(record["placement"]) == {
+    assert record["steps"] == [3, ACCEL_STEPS] and set(record["placement"]) == {
         "service", "learner", "explorer-0"}
     state_a, key_a, step_a = final_state(local, ued_config(method))
     state_b, key_b, step_b = final_state(remote, ued_config(method))
-    assert step_a == step_b == STEPS
+    assert step_a == step_b == ACCEL_STEPS
     assert trees_equal(state_a.params, state_b.params) and np.array_equal(key_a, key_b)
-    assert (local / LEVELS_DIR / f"buffer-{STEPS}.msgpack").read_bytes() == (
-        remote / LEVELS_DIR / f"buffer-{STEPS}.msgpack").read_bytes()
+    assert (local / LEVELS_DIR / f"buffer-{ACCEL_STEPS}.msgpack").read_bytes() == (
+        remote / LEVELS_DIR / f"buffer-{ACCEL_STEPS}.msgpack").read_bytes()
 
 
 def test_an_evaluator_killed_mid_evaluation_runs_it_again_on_its_restart(tmp_path,
@@ -401,7 +396,9 @@ def test_ued_bench_times_an_explorer_restart():
     from tabx_bench.ued import bench_restart
 
     out = io.StringIO()
-    result = bench_restart(ray, ued_config("robust_plr"), True, out)
+    # The session's compilation cache (tests/conftest.py): the Explorer's programs load.
+    result = bench_restart(ray, ued_config("robust_plr"), True, out,
+                           cache_dir=os.environ["TABX_COMPILE_CACHE_DIR"])
     assert result.first_score_s > 0 and 0 < result.ready_s <= result.restarted_score_s
     assert result.service_commits == 50 and result.service_ready_s > 0  # none lost, or raises
     assert "restart, compilation cache on: Explorer back in" in out.getvalue()
@@ -420,16 +417,15 @@ def kill_service_at(run_dir, steps):
 
 
 def test_a_killed_service_restarts_with_every_commit_and_the_run_equals_the_local_one(
-        tmp_path):
+        tmp_path, local_accel):
     # Deterministic: killed after step 3 (it restores from the start of the session and its
     # log) and after step 5 (from the snapshot of step 4 and its log). Parameters, key and
     # every snapshot equal the local driver's uninterrupted run: no commit lost or repeated.
-    method, steps = "accel", 7
-    local = train(ued_config(method, **{"run.checkpoint_every": 4}), run_dir=tmp_path / "local",
-                  stream=io.StringIO(), max_updates=steps)
+    method, steps = "accel", ACCEL_STEPS
+    local = local_accel
     run_dir = tmp_path / "ray"
     config = ray_config(method, **{"ray.deterministic": "true", "ray.explorers": 1,
-                                   "run.checkpoint_every": 4})
+                                   **ACCEL_CONFIG})
     out = io.StringIO()
     train(config, run_dir=run_dir, stream=out, max_updates=steps,
           callback=kill_service_at(run_dir, {3, 5}))
@@ -464,19 +460,168 @@ def test_a_killed_service_loses_no_committed_batch_in_the_asynchronous_mode(tmp_
     assert buffer.stats["insert_attempts"] == 4 * new  # none lost, none counted twice
 
 
-def test_a_long_run_holds_no_more_object_refs_at_its_end_than_early_on(tmp_path):
+def test_a_long_run_holds_no_more_object_refs_at_its_end_and_can_be_inspected_while_it_runs(
+        tmp_path):
     # 40 asynchronous steps: refs of levels, scores and parameters are released once used,
-    # so the driver's reference table (and the objects it pins) stays flat.
-    seen = {}
+    # so the driver's reference table (and the objects it pins) stays flat. After step 3 a
+    # user asks from another process, as `tabx runs buffer|status RUN` does, what it holds.
+    from tabx_ued.cli import main
+
+    run_dir = tmp_path / "long"
+    seen, inspected = {}, {}
 
     def count(done, train_state, values):
         seen[done] = values["ray/driver_refs"]
+        if done == 3:  # the run is going: ask from outside, as a user would
+            for what in ("buffer", "status"):
+                inspected[what] = subprocess.run(
+                    [sys.executable, "-m", "tabx_ued", "runs", what, str(run_dir)],
+                    capture_output=True, text=True, timeout=120)
 
     config = ray_config("robust_plr", **{"ray.explorers": 1, "ued.replay_prob": 0.5,
                                          "ued.buffer_size": 32, "ued.min_fill_ratio": 0.25,
-                                         "learner.total_timesteps": 40 * 64})
-    train(config, run_dir=tmp_path / "long", stream=io.StringIO(), max_updates=40,
-          callback=count)
+                                         "learner.total_timesteps": 40 * 64,
+                                         "run.log_every": 1})
+    train(config, run_dir=run_dir, stream=io.StringIO(), max_updates=40, callback=count)
     early = max(seen[s] for s in range(5, 15))
     late = max(seen[s] for s in range(30, 41))
     assert 0 < late <= early + 2, seen
+
+    buffer = inspected["buffer"]
+    assert buffer.returncode == 0, buffer.stderr[-2000:]
+    assert f"{run_dir} (live): " in buffer.stdout and " / 32 levels" in buffer.stdout
+    assert "policy versions:" in buffer.stdout  # the summary of tabx buffer inspect
+    status = inspected["status"]
+    assert status.returncode == 0, status.stderr[-2000:]
+    assert f"{run_dir}: running; asynchronous schedule; step 3 of 40" in status.stdout
+    assert "explorer-0" in status.stdout and "learner" in status.stdout
+    # Over: the record says so, and the live buffer points to the snapshots.
+    record = json.loads((run_dir / RAY_RECORD).read_text())
+    assert record["status"] == "finished" and record["steps"] == [0, 40]
+    assert main(["runs", "buffer", str(run_dir)]) == 2
+    assert main(["runs", "status", str(tmp_path / "nowhere")]) == 2
+
+
+# With `-m slow`: tests/test_ray_schedule.py's continuous tests (stand-in Ray) check that every
+# issued batch is committed once and stale ones are scored again, without kills.
+@pytest.mark.slow
+def test_continuous_scoring_commits_every_batch_once_when_explorers_and_the_service_die(
+        tmp_path, monkeypatch):
+    # ACCEL on the continuous schedule: the Explorer is SIGKILLed right after its third batch
+    # went to it, the service after steps 3 and 6. Batches in flight are re-issued, levels
+    # lost with the service asked for again, numbered calls sent again in order: every
+    # issued batch is committed exactly once, and the buffer saw each batch's levels once.
+    import signal
+
+    from workers.ray_driver import AsyncRun
+
+    killed: list[int] = []
+    submitted = {"n": 0}
+    original = AsyncRun._submit
+
+    def submit_then_kill(self, batch):
+        actor = self.scorers[batch.explorer]
+        if submitted["n"] == 0:
+            killed.append(ray.get(actor.pid.remote()))
+        original(self, batch)
+        submitted["n"] += 1
+        if submitted["n"] == 3:
+            os.kill(killed[0], signal.SIGKILL)
+
+    monkeypatch.setattr(AsyncRun, "_submit", submit_then_kill)
+    run_dir = tmp_path / "continuous"
+    config = ray_config("accel", **{"ray.explorers": 1, "ray.max_inflight": 2,
+                                    "ray.schedule": "continuous", "ued.buffer_size": 32,
+                                    "ued.min_fill_ratio": 0.25})
+    out = io.StringIO()
+    train(config, run_dir=run_dir, stream=out, max_updates=8,
+          callback=kill_service_at(run_dir, {3, 6}))
+    record = json.loads((run_dir / RAY_RECORD).read_text())
+    assert record["mode"] == "continuous"
+    assert record["restarts"] == {"explorer-0": 1, "service": 2}, out.getvalue()[-3000:]
+    assert record["ledger"] == {"committed": 8} and record["branches"]["replay"] == 8
+    committed = record["committed_batches"]
+    assert record["explorer_batches"] == {"committed": committed} and committed >= 2
+    buffer = LevelBuffer.load(run_dir / LEVELS_DIR / "buffer-8.msgpack")
+    assert buffer.stats["insert_attempts"] == 4 * committed  # none lost, none counted twice
+
+
+def test_the_simulated_control_plane_keeps_8_explorers_near_their_ideal_rate():
+    # `tabx bench ued --simulate` at a small size: 8 stand-in Explorers of 0.2 s batches (ideal
+    # 40 batches/s) on the real driver, level service and commit log; a generous bound (the
+    # machine is shared), the measured numbers are in docs/benchmarks.md.
+    from tabx_bench.ued_sim import simulate
+
+    config = ray_config("robust_plr")
+    result = simulate(ray, config, 8, batch_s=0.2, learner_s=0.2, seconds=2.0)
+    assert result.committed_per_s >= 0.5 * result.ideal_per_s, result
+    assert result.learner_steps >= 3 and result.service_fsyncs < result.service_calls
+
+
+# With `-m slow`: tests/test_learner_group.py runs the same update in 2 processes by default,
+# and test_a_learner_group_sends_collective_calls_to_every_member its Ray handle.
+@pytest.mark.slow
+def test_two_learner_processes_train_as_one_learner_with_two_devices_and_resume_on_one(
+        tmp_path):
+    """`ray.learners: 2` (one JAX process group, gloo collectives; `learner.num_devices`
+    automatic: 1 device each for their 2 envs) trains as one learner with 2 devices, bit for
+    bit; its checkpoint (saved once, from learner 0) resumes on 1 learner (2 devices) and
+    continues as the uninterrupted run. Robust PLR, deterministic; learner 0 also scores."""
+    import dataclasses
+
+    local = train(ued_config("robust_plr"), run_dir=tmp_path / "local", stream=io.StringIO(),
+                  max_updates=3)
+    config = ray_config("robust_plr", **{"ray.deterministic": "true", "ray.explorers": 0,
+                                         "ray.learners": 2})
+    remote = train(config, run_dir=tmp_path / "group", stream=io.StringIO(), max_updates=2)
+    record = json.loads((remote / RAY_RECORD).read_text())
+    assert record["learners"] == 2 and len(record["learner_nodes"]) == 2
+    one = dataclasses.replace(config.ray, learners=1)
+    train(run_dir=remote, resume=True, ray=one, stream=io.StringIO(), max_updates=1)
+    record = json.loads((remote / RAY_RECORD).read_text())
+    assert record["learners"] == 1 and record["steps"] == [2, 3]
+    state_a, key_a, step_a = final_state(local, ued_config("robust_plr"))
+    state_b, key_b, step_b = final_state(remote, ued_config("robust_plr"))
+    assert step_a == step_b == 3
+    assert trees_equal(state_a.params, state_b.params)
+    assert trees_equal(state_a.opt_state, state_b.opt_state)
+    assert np.array_equal(key_a, key_b)
+
+
+# With `-m slow`: test_learner_group.py's killed-member test covers the group's stop, and
+# test_a_learner_group_restart_counts_the_steps_since_the_checkpoint the restart's count.
+@pytest.mark.slow
+def test_a_killed_learner_stops_its_group_and_the_run_restarts_from_its_checkpoint(tmp_path):
+    """`ray.learners: 2`, learner 1 SIGKILLed after step 3 (checkpoints every 2 steps): the
+    next update fails on learner 0 too (its collective loses a member), the run continues by
+    itself from the checkpoint of step 2 (`ray.learner_restarts: 1`), step 3 is lost and
+    played again, and the deterministic run ends as the uninterrupted local one."""
+    import signal
+
+    overrides = {"run.checkpoint_every": 2, "run.log_every": 1}
+    local = train(ued_config("robust_plr", **overrides), run_dir=tmp_path / "local",
+                  stream=io.StringIO(), max_updates=4)
+    run_dir = tmp_path / "group"
+
+    def kill_learner_1(done, train_state, values):
+        if done == 3 and not killed:
+            name = json.loads((run_dir / RAY_RECORD).read_text())["actors"]["learner"]
+            member = ray.get_actor(f"{name}-1", namespace=RAY_NAMESPACE)
+            os.kill(ray.get(member.pid.remote()), signal.SIGKILL)
+            killed.append(done)
+
+    killed: list[int] = []
+    config = ray_config("robust_plr", **overrides, **{
+        "ray.deterministic": "true", "ray.explorers": 0, "ray.learners": 2,
+        "ray.learner_restarts": 1})
+    out = io.StringIO()
+    train(config, run_dir=run_dir, stream=out, max_updates=4, callback=kill_learner_1)
+    assert killed == [3]
+    record = json.loads((run_dir / RAY_RECORD).read_text())
+    assert record["learner_restarts"] == 1 and record["steps_lost"] == 1, out.getvalue()[-3000:]
+    assert record["status"] == "finished" and record["steps"] == [2, 4]
+    assert "continues from its checkpoint at step 2; 1 steps lost" in out.getvalue()
+    state_a, key_a, step_a = final_state(local, ued_config("robust_plr"))
+    state_b, key_b, step_b = final_state(run_dir, ued_config("robust_plr"))
+    assert step_a == step_b == 4
+    assert trees_equal(state_a.params, state_b.params) and np.array_equal(key_a, key_b)

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from test_ued_train import ued_config
 
+from level_buffer import Source
 from ued.curricula import Branch
 from workers.actor_manager import ActorDeaths
 from workers.actors import ExplorerActor, LearnerActor, LevelServiceActor
@@ -127,3 +128,68 @@ def test_sfl_batches_go_to_every_explorer_before_any_result_is_awaited():
     assert [s[0] for s in scores] == [1.0, 2.0, 3.0]  # in batch order
     assert log[:3] == [("run", "a"), ("run", "b"), ("run", "a")]  # round-robin, all sent
     assert log[3:] == [("get",)] * 3  # before the first result is awaited
+
+
+class PromptRay(SlowRay):
+    """Every result ready at once (Explorers that keep pace with the learner)."""
+
+    def wait(self, refs: list[Ref], num_returns: int = 1, timeout: float | None = None):
+        return refs[:num_returns], refs[num_returns:]
+
+
+def run_continuous(method: str, ray: SlowRay, steps: int = 6, max_policy_lag: int = 1):
+    from workers.continuous import ContinuousRun
+
+    config = ued_config(method, **{
+        "ray.enabled": "true", "ray.explorers": 2, "ray.max_inflight": 2,
+        "ray.schedule": "continuous", "ray.max_policy_lag": max_policy_lag,
+        "ued.buffer_size": 32, "ued.min_fill_ratio": 0.25})
+    learner_actor = LearnerActor(config)
+    explorer_actors = [ExplorerActor(config, learner_actor.learner) for _ in range(2)]
+    for actor in explorer_actors:
+        actor.cache.fetch = ray.get
+    workers = Workers(Actor(LevelServiceActor(config)), Actor(learner_actor),
+                      [Actor(a) for a in explorer_actors], None, 0.0)
+    learner_actor.init(jax.random.key(0))
+    service = RemoteService(ray, workers.service, ActorDeaths(None))
+    run = UEDRun(config, service, ExplorerPool(ray, workers.scorers()), [])
+    schedule = ContinuousRun(ray, config, run, RemoteLearner(ray, workers.learner), workers,
+                             service=service)
+    key = jax.random.key(config.seed)
+    branches = []
+    for step in range(steps):
+        key, k_step = jax.random.split(key)
+        branches.append(schedule.step(step, k_step)[0])
+        assert all(n <= config.ray.max_inflight for n in schedule.inflight)
+    schedule.drain()
+    return schedule, branches, workers.service._obj
+
+
+@pytest.mark.parametrize(("method", "ray"), [("robust_plr", SlowRay()),
+                                             ("accel", PromptRay())])
+def test_continuous_scoring_trains_every_step_and_commits_every_batch_once(method, ray):
+    # SlowRay: Explorer results arrive only when the driver blocks (for the buffer's fill), so
+    # batches pile up and go stale (re-scored); PromptRay: every result is ready at once, so
+    # Explorers are refilled at every step. Every issued batch is committed once.
+    schedule, branches, service = run_continuous(method, ray)
+    assert branches == [Branch.REPLAY] * len(branches)  # every step trains on a replay batch
+    assert schedule.ledger == dict.fromkeys(range(len(branches)), "committed")
+    issued = schedule.issued
+    assert issued >= (12 if isinstance(ray, PromptRay) else 4)
+    assert schedule.batches == dict.fromkeys(range(issued), "committed")
+    assert schedule.stats.committed == issued and not service_unanswered(schedule)
+    # Each committed batch offered its 4 levels once: none lost, none counted twice.
+    assert service.buffer.stats["insert_attempts"] == 4 * issued
+    assert service.buffer.stats["updated"] >= 1  # replay scores came back (by id)
+    assert max(schedule.stats.staleness) <= 1
+    assert schedule.learner.version == len(branches)
+    sources = set(service.buffer.column("source").tolist())
+    assert (int(Source.MUTATION) in sources) == (method == "accel")
+    if isinstance(ray, PromptRay):
+        assert schedule.group_commits < issued  # results that arrived together: one commit
+    else:
+        assert schedule.stats.rescored >= 1  # stale when they arrived: scored again
+
+
+def service_unanswered(schedule) -> list:
+    return [c for c in schedule.service.unanswered if c not in schedule.service.by_ref]

@@ -5,7 +5,8 @@ learner's `TrainState` (parameters, optimiser state, update count) and the loop'
 (as raw uint32 key data). Saving is synchronous, so a checkpoint is complete on disk when
 `save` returns and the next (donating) update cannot race it. Restoring against the
 structure of a freshly initialised state gives the saved arrays back bit for bit; a checkpoint
-that cannot be restored (a damaged or missing file) is a `CheckpointError` naming its folder.
+that cannot be restored (a damaged or missing file, a step metadata file that orbax rejects)
+is a `CheckpointError` naming its folder; the other steps still restore.
 
 Each checkpoint also carries orbax `custom_metadata`, a small JSON mapping that says what
 produced it (`ued.run_folder.checkpoint_metadata`: config hash, update, policy version,
@@ -23,6 +24,7 @@ check asks it). Checkpoints saved without digests restore unchecked.
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import hashlib
 import logging
@@ -93,9 +95,9 @@ class Checkpoints:
         digest of each that exists when a checkpoint is saved is recorded and checked."""
         self.directory = Path(directory).absolute()
         self.covers = tuple(covers)
-        options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=create,
-                                               enable_async_checkpointing=False)
-        self._manager = ocp.CheckpointManager(self.directory, options=options)
+        self._options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=create,
+                                                     enable_async_checkpointing=False)
+        self._manager = open_manager(self.directory, self._options)
 
     def latest(self) -> int | None:
         """The newest saved update number, or None."""
@@ -163,15 +165,7 @@ class Checkpoints:
         return meta
 
     def _custom_metadata(self, update: int) -> dict[str, Any]:
-        # Reading a step's metadata without its item's handler makes orbax warn, once per
-        # call, that it cannot restore the item: true, and not asked for here.
-        quiet = _MessageFilter("could not be restored. Please provide a `CheckpointHandler")
-        absl_logger = logging.getLogger("absl")
-        absl_logger.addFilter(quiet)
-        try:
-            step = self._manager.metadata(int(update))
-        finally:
-            absl_logger.removeFilter(quiet)
+        step = step_metadata(self._manager, update)
         return dict(getattr(step, "custom_metadata", None) or {})
 
     def _covered(self, update: int) -> list[tuple[str, Path]]:
@@ -226,6 +220,7 @@ class Checkpoints:
                     "key": jax.ShapeDtypeStruct(key_shape, np.uint32)}
         _quiet_abandoned_reads()
         try:
+            step_metadata(self._manager, update)  # a step whose metadata orbax rejects
             item = self._manager.restore(update, args=ocp.args.StandardRestore(abstract))
         except Exception as err:  # noqa: BLE001 (orbax and TensorStore raise many kinds)
             raise CheckpointError(f"{self.directory / str(update)}: cannot be restored "
@@ -247,8 +242,9 @@ class Checkpoints:
         options = ocp.CheckpointManagerOptions(create=False, enable_async_checkpointing=False)
         _quiet_abandoned_reads()
         try:
-            with ocp.CheckpointManager(self.directory, options=options,
-                                       item_handlers=ocp.StandardCheckpointHandler()) as manager:
+            with open_manager(self.directory, options,
+                              item_handlers=ocp.StandardCheckpointHandler()) as manager:
+                step_metadata(manager, update)  # a step whose metadata orbax rejects
                 saved = manager.item_metadata(int(update)).tree
                 abstract = jax.tree.map(
                     lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device), saved)
@@ -273,6 +269,7 @@ class Checkpoints:
         restore_args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), abstract)
         _quiet_abandoned_reads()
         try:
+            step_metadata(self._manager, update)  # a step whose metadata orbax rejects
             # The manager saved one item, named "default", in the step's folder.
             item = ocp.PyTreeCheckpointer().restore(
                 self.directory / str(update) / "default",
@@ -287,7 +284,11 @@ class Checkpoints:
 
     def reload(self) -> None:
         """Read the step folders again (after some were moved away)."""
-        self._manager.reload()
+        try:
+            self._manager.reload()
+        except Exception:  # noqa: BLE001 (a damaged step's metadata: see open_manager)
+            self._manager.close()
+            self._manager = open_manager(self.directory, self._options)
 
     def close(self) -> None:
         self._manager.close()
@@ -297,6 +298,37 @@ class Checkpoints:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def open_manager(directory: Path, options: ocp.CheckpointManagerOptions,
+                 **kwargs: Any) -> ocp.CheckpointManager:
+    """Orbax's `CheckpointManager` over `directory`, even where a step's
+    `_CHECKPOINT_METADATA` is damaged.
+
+    Orbax reads every step's metadata file as it opens (for the step times of retention
+    policies this module does not use), and one whose JSON parses into what it cannot take (a
+    flipped byte in a key, a list) raises there, for every step at once. Then the manager is
+    opened without that read (`lightweight_initialize`): the other steps restore, and the
+    damaged one is a `CheckpointError` naming its step when it is read, as with any other
+    damaged file."""
+    try:
+        return ocp.CheckpointManager(directory, options=options, **kwargs)
+    except Exception:  # noqa: BLE001 (orbax's metadata parsers raise many kinds)
+        light = dataclasses.replace(options, lightweight_initialize=True)
+        return ocp.CheckpointManager(directory, options=light, **kwargs)
+
+
+def step_metadata(manager: ocp.CheckpointManager, update: int) -> Any:
+    """Orbax's metadata of step `update` (raises where orbax rejects it). Read without the
+    item's handler, orbax warns each time that it cannot restore the item: true, and not
+    asked for here, so that warning stays off the terminal."""
+    quiet = _MessageFilter("could not be restored. Please provide a `CheckpointHandler")
+    absl_logger = logging.getLogger("absl")
+    absl_logger.addFilter(quiet)
+    try:
+        return manager.metadata(int(update))
+    finally:
+        absl_logger.removeFilter(quiet)
 
 
 def _is_abandoned_read(exc: BaseException | None) -> bool:
@@ -355,4 +387,4 @@ def _quiet_abandoned_reads() -> None:
 
 
 __all__ = ["INTEGRITY_KEY", "CheckpointError", "Checkpoints", "array_digests", "file_digest",
-           "leaf_name"]
+           "leaf_name", "open_manager", "step_metadata"]

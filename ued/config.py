@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
 import math
 import types
 import typing
@@ -321,6 +322,9 @@ class UEDSection:
 CHAOS_ROLES = ("explorer", "service", "evaluator")  # the actors a run restarts
 
 
+RAY_SCHEDULES = ("sequential", "continuous")
+
+
 @dataclass(frozen=True)
 class RaySection:
     """Running a UED run's workers as Ray actors (docs/distributed.md). Off by default: the
@@ -332,7 +336,13 @@ class RaySection:
     max_inflight: int = 2  # batches each Explorer may run ahead of the driver
     max_policy_lag: int = 4  # a score this many policy versions older is re-scored
     deterministic: bool = False  # the local driver's schedule, step by step (equal results)
+    # "sequential": the paper's steps, one batch per step (scored by an Explorer or trained);
+    # "continuous": Explorers score new levels without pause, every step trains (Robust PLR,
+    # ACCEL; docs/distributed.md, "Continuous scoring")
+    schedule: str = "sequential"
     learner_gpus: float = -1.0  # GPUs of the learner actor; -1: one if the cluster has any
+    learners: int = 1  # learner actors that run each update together (a JAX process group)
+    learner_restarts: int = 0  # times a run stopped by a lost actor (its learner) resumes itself
     num_cpus: int = 0  # CPUs of a Ray started here (0: Ray's own count)
     object_store_mb: int = 512  # object store of a Ray started here
     actor_restarts: int = -1  # restarts of each Explorer and the Evaluator (-1: no limit)
@@ -347,9 +357,17 @@ class RaySection:
                f"must be >= 1, got {self.max_inflight}")
         _check(self.max_policy_lag >= 0, f"{prefix}.max_policy_lag",
                f"must be >= 0, got {self.max_policy_lag}")
+        _check(self.schedule in RAY_SCHEDULES, f"{prefix}.schedule",
+               f"must be one of {', '.join(RAY_SCHEDULES)}, got {self.schedule!r}")
+        _check(not (self.deterministic and self.schedule == "continuous"),
+               f"{prefix}.schedule", "continuous scoring runs beside the learner: it cannot "
+               "be deterministic (drop ray.deterministic or use schedule sequential)")
         _check(self.learner_gpus == -1.0 or self.learner_gpus >= 0, f"{prefix}.learner_gpus",
                f"must be -1 (auto) or >= 0, got {self.learner_gpus}")
         _check(self.num_cpus >= 0, f"{prefix}.num_cpus", f"must be >= 0, got {self.num_cpus}")
+        _check(self.learners >= 1, f"{prefix}.learners", f"must be >= 1, got {self.learners}")
+        _check(self.learner_restarts >= 0, f"{prefix}.learner_restarts",
+               f"must be >= 0, got {self.learner_restarts}")
         _check(self.object_store_mb >= 64, f"{prefix}.object_store_mb",
                f"must be >= 64, got {self.object_store_mb}")
         _check(self.actor_restarts >= -1, f"{prefix}.actor_restarts",
@@ -392,6 +410,14 @@ class TrainConfig:
         self.ued.validate()
         self.levels.validate()
         self.ray.validate()
+        if self.ray.enabled and self.ray.learners > 1:
+            share = self.ray.learners * max(self.learner.num_devices, 1) * (
+                self.learner.num_minibatches)
+            _check(learner.devices and self.learner.num_envs % share == 0, "ray.learners",
+                   f"{self.ray.learners} learners split each minibatch of learner.num_envs "
+                   f"({self.learner.num_envs}) over their devices: it must divide by "
+                   f"learners x num_devices x num_minibatches ({share}), for a learner that "
+                   f"runs on several devices")
         self._validate_seeds()
         _check(not self.run.value_error_every or learner.value_head,
                "run.value_error_every", f"the value error compares a value head with Monte-Carlo "
@@ -576,7 +602,7 @@ def _build(cls: type, data: Any, prefix: str) -> Any:
     if not isinstance(data, Mapping):
         raise ConfigError(f"{prefix or 'config'}: expected a mapping of keys to values, got "
                           f"{type(data).__name__}")
-    hints = typing.get_type_hints(cls)
+    hints = _type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls)}
     values = {}
     for key, value in data.items():
@@ -639,10 +665,16 @@ def read_config_file(path: str | Path) -> Any:
     return read_yaml(content, str(path))
 
 
+# A config class's field types, read once: typing evaluates the annotations' strings on every
+# call, which made reading a sweep of hundreds of configs take seconds per hundred.
+_type_hints = functools.cache(typing.get_type_hints)
+
+
+@functools.cache
 def _field_paths() -> dict[str, list[str]]:
     """Bare field name -> its dotted paths."""
     out: dict[str, list[str]] = {}
-    hints = typing.get_type_hints(TrainConfig)
+    hints = _type_hints(TrainConfig)
     for f in dataclasses.fields(TrainConfig):
         tp = hints[f.name]
         if dataclasses.is_dataclass(tp):
@@ -660,7 +692,7 @@ def apply_overrides(data: Any, overrides: Sequence[str], source: str = "config")
     out = {k: dict(v) if isinstance(v, Mapping) else v for k, v in data.items()}
     paths = _field_paths()
     sections = {f.name for f in dataclasses.fields(TrainConfig)
-                if dataclasses.is_dataclass(typing.get_type_hints(TrainConfig)[f.name])}
+                if dataclasses.is_dataclass(_type_hints(TrainConfig)[f.name])}
     for item in overrides:
         key, sep, text = item.partition("=")
         key = key.strip()

@@ -42,9 +42,13 @@ def bundled_configs() -> dict[str, Path]:
     return {p.relative_to(folder).with_suffix("").as_posix(): p for p in files}
 
 
+SWEEP_FOLDER = "sweeps"  # shipped sweep files (`tabx sweep`), not training configs
+
+
 def list_configs() -> list[str]:
-    """The names of the shipped configs, sorted."""
-    return list(bundled_configs())
+    """The names of the shipped training configs, sorted (the sweep files under sweeps/ are
+    found by name too, but they are not configs a run trains with)."""
+    return [name for name in bundled_configs() if not name.startswith(f"{SWEEP_FOLDER}/")]
 
 
 def resolve_config(name_or_path: str | Path) -> Path:

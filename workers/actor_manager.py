@@ -177,10 +177,12 @@ class ActorManager:
             try:
                 return self.ray.get(call.ref)
             except Exception as err:
+                lost = call.ref
                 if not self.recover(call, err):
                     raise RunStopped(f"{call.actor}: {call.method} was given up "
                                      f"({death_cause(err)})") from err
-                self.send(call)
+                if call.ref is lost:  # not sent again meanwhile (by a restart hook)
+                    self.send(call)
 
     def call(self, actor: str, method: str, *args: Any, then: str = "", **kwargs: Any) -> Any:
         """`actor.method(*args, **kwargs)`, waited for; after a restart of `actor` the same call

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import jax
 import jax.numpy as jnp
@@ -43,6 +43,10 @@ from workers.ued_step import evaluators_for, level_service_for
 # XLA settings itself (one CPU device per usable core of its node), when Ray loads the actor
 # class, before JAX starts its backend there (no module imported above starts it).
 xla_flags.apply()
+
+
+T = TypeVar("T")
+GROUP_LOST_EXIT = 75  # the exit status of a learner group member whose update failed
 
 
 @dataclass(frozen=True)
@@ -120,6 +124,9 @@ class LevelServiceActor(DurableLevelService, ActorBase):
     def sample_learnable(self, key: jax.Array, n: int) -> EnvParams:
         return to_host(super().sample_learnable(key, n))
 
+    def mutate_replay(self, key: jax.Array, replay: Any) -> EnvParams:
+        return to_host(super().mutate_replay(key, replay))
+
     def buffer_bytes(self) -> bytes | None:
         """The level buffer as it is now, in the level-buffer file format (`tabx runs
         buffer`); None where the method keeps no buffer."""
@@ -150,11 +157,38 @@ class ExplorerActor(ActorBase):
 
 class LearnerActor(ExplorerActor):
     """The one learner: holds the train state and counts policy versions. It can also score
-    (`ray.explorers: 0`), with its own parameters."""
+    (`ray.explorers: 0`), with its own parameters. With `group` (coordinator HOST:PORT,
+    members, this member's index) it is one member of a learner group
+    (workers/learner_group.py): it joins JAX's multi-process runtime before JAX starts."""
 
-    def __init__(self, config: TrainConfig):
+    def __init__(self, config: TrainConfig, group: tuple[str, int, int] | None = None):
+        if group is not None:
+            from ued.learners import distributed
+
+            distributed.join(*group)
         super().__init__(config)
+        self.group = group
         self.state: LearnerWorker | None = None
+
+    def _together(self, fn: Callable[[], T]) -> T:
+        """`fn()`, an update the group runs together (its results on the host). A member whose
+        update fails (a collective that lost a member: gloo's connection closed) ends its
+        process: the group cannot go on, and the driver sees a learner lost, not an error of
+        the update."""
+        if self.group is None:
+            return fn()
+        try:
+            return fn()
+        except Exception:
+            import os
+            import sys
+            import traceback
+
+            traceback.print_exc()
+            sys.stderr.write(f"learner {self.group[2]} of {self.group[1]}: the group's update "
+                             f"failed; this member ends\n")
+            sys.stderr.flush()
+            os._exit(GROUP_LOST_EXIT)
 
     def init(self, key: jax.Array) -> None:
         self.state = LearnerWorker(self.learner, self.learner.init(key))
@@ -165,15 +199,26 @@ class LearnerActor(ExplorerActor):
         return self.state
 
     def train(self, levels: EnvParams, key: jax.Array) -> dict[str, float]:
-        metrics, _ = self._learner().train(to_device(levels), key)
-        return _host_metrics(metrics)
+        return self._together(lambda: _host_metrics(
+            self._learner().train(to_device(levels), key)[0]))
 
     def train_scored(self, levels: EnvParams, key: jax.Array, score: str,
                      max_returns: Any = None
                      ) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
-        metrics, scores, best = self._learner().train_scored(to_device(levels), key, score,
-                                                             max_returns)
-        return _host_metrics(metrics), scores, best
+        def run() -> tuple[dict[str, float], np.ndarray, np.ndarray]:
+            metrics, scores, best = self._learner().train_scored(to_device(levels), key, score,
+                                                                 max_returns)
+            return _host_metrics(metrics), scores, best
+
+        return self._together(run)
+
+    def train_replay(self, replay: Any, key: jax.Array, score: str
+                     ) -> tuple[dict[str, float], np.ndarray, np.ndarray, np.ndarray]:
+        """A replay step on a batch the level service drew (`level_buffer.Replay`, handed
+        over by ref: it never passes through the driver): (metrics, the replayed ids, their
+        new scores, best returns)."""
+        metrics, scores, best = self.train_scored(replay.levels, key, score, replay.max_returns)
+        return metrics, np.asarray(replay.ids), scores, best
 
     def params(self) -> Any:
         """The current parameters as numpy (the driver owns the returned object)."""

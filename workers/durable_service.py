@@ -21,7 +21,9 @@ those steps), removed when empty.
 
 The driver numbers its state-changing calls (`apply(seq, method, ...)`); a call it sends again
 after a death is answered from the result of the first application when the log already holds
-it, never applied twice.
+it, never applied twice. `apply_many` is a group commit: several numbered calls applied in
+order, one fsync for all of their records, then one answer; a crash before the fsync loses
+only calls that were never acknowledged (the driver sends them again).
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import shutil
 import sys
 import time
 from collections import OrderedDict
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -45,7 +48,14 @@ from workers.level_service import LevelService
 
 LOG_NAME = "commits-{}.log"
 MUTATING = ("insert", "update", "replay", "sample_replay_decision", "set_learnable")
-KEEP_RESULTS = 64  # results of the newest calls, for calls sent again after a restart
+KEEP_RESULTS = 256  # results of the newest calls, for calls sent again after a restart
+
+
+@dataclass(frozen=True)
+class Slot:
+    """In a group commit's call (`apply_many`): the argument passed flat at `index`."""
+
+    index: int
 
 
 class DurableLevelService(LevelService):
@@ -72,6 +82,25 @@ class DurableLevelService(LevelService):
         """Apply state-changing call number `seq`, `method(*args, **kwargs)`, once: a number
         already applied returns that call's result again. (The arguments are passed flat, so
         that Ray resolves an ObjectRef among them.)"""
+        return self._apply(seq, method, args, kwargs, sync=True)
+
+    def apply_many(self, calls: list[tuple[int, str, tuple, dict]], *values: Any) -> list[Any]:
+        """Group commit: apply the numbered calls `calls` ([seq, method, args, kwargs], in
+        order) each as `apply` does, then make their log records durable with one fsync, and
+        only then answer (their results, in order). An argument `Slot(i)` stands for
+        `values[i]`: passed flat, so that Ray resolves the ObjectRefs among them (levels made
+        by this service and scored elsewhere)."""
+        def fill(arg: Any) -> Any:
+            return values[arg.index] if isinstance(arg, Slot) else arg
+
+        results = [self._apply(seq, method, tuple(fill(a) for a in args),
+                               {k: fill(v) for k, v in kwargs.items()}, sync=False)
+                   for seq, method, args, kwargs in calls]
+        if self.log is not None:
+            self.log.sync()
+        return results
+
+    def _apply(self, seq: int, method: str, args: tuple, kwargs: dict, sync: bool) -> Any:
         if method not in MUTATING:
             raise ValueError(f"{method!r} is not a state-changing call of the level service")
         if seq <= self.seq:
@@ -88,7 +117,8 @@ class DurableLevelService(LevelService):
                                f"{self.seq}: calls {self.seq + 1}..{seq - 1} are missing")
         result = getattr(LevelService, method)(self, *args, **kwargs)
         if self.log is not None:
-            self.log.append([seq, method, self._encode(list(args)), self._encode(kwargs)])
+            self.log.append([seq, method, self._encode(list(args)), self._encode(kwargs)],
+                            sync=sync)
         self._applied(seq, method, result)
         return result
 
@@ -222,4 +252,4 @@ class DurableLevelService(LevelService):
         return value
 
 
-__all__ = ["LOG_NAME", "MUTATING", "DurableLevelService"]
+__all__ = ["LOG_NAME", "MUTATING", "DurableLevelService", "Slot"]

@@ -92,6 +92,11 @@ class LevelService:
         no insert can evict a parent in between)."""
         return self.mutate(key, self.get(parent_ids))
 
+    def mutate_replay(self, key: jax.Array, replay: Replay) -> EnvParams:
+        """ACCEL children of a replay batch's levels (as drawn: a parent evicted since then
+        still has its children)."""
+        return self.mutate(key, replay.levels)
+
     def sample_replay_decision(self) -> bool:
         """Replay (True) or new levels: the buffer's decision (the curriculum asks)."""
         return self._need_buffer().sample_replay_decision()

@@ -29,6 +29,9 @@ Two modes (`ray.deterministic`):
   than the learner's is re-scored with the current policy instead (counted, `ray/rescored`).
 - **deterministic**: every batch in step order, each committed before the next is decided,
   exactly the local driver's schedule: parameters and buffer equal the local driver's.
+
+`ray.schedule: continuous` replaces the asynchronous mode's steps with continuous scoring
+(`workers.continuous`, handed to `RayDriver` by `workers.train.driver_for`).
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ import logging
 import os
 import socket
 import sys
+import threading
 import time
 import uuid
 import warnings
@@ -63,6 +67,7 @@ from workers.actors import (
     ParamsRef,
 )
 from workers.driver import Callback, Driver, RunStopped
+from workers.learner_group import LearnerGroup, Restarts, start_group
 from workers.ray_restarts import SERVICE, Chaos, RemoteService
 from workers.training_loop import Output, Report, Runner, train_loop
 from workers.ued_step import LevelRequest, UEDRun, branch_text
@@ -236,9 +241,15 @@ def start_workers(ray: Any, config: TrainConfig, stream: TextIO,
                     None if levels_dir is None else str(levels_dir), run_name or "",
                     num_cpus=0, restarts=restarts if levels_dir is not None else 0,
                     scheduling_strategy=NodeAffinitySchedulingStrategy(driver_node, soft=False))
-    learner = spawn(LearnerActor, "learner", config, num_gpus=gpus, num_cpus=1 if not gpus else 0,
-                    **({} if gpus else {"scheduling_strategy": NodeAffinitySchedulingStrategy(
-                        driver_node, soft=True)}))
+    if section.learners > 1:  # a learner group, placed by its own placement group
+        learner = start_group(ray, section.learners, gpus, lambda i, group, strategy: spawn(
+            LearnerActor, "learner" if i == 0 else f"learner-{i}", config, group,
+            num_gpus=gpus, num_cpus=1 if not gpus else 0, scheduling_strategy=strategy))
+    else:
+        learner = spawn(LearnerActor, "learner", config, num_gpus=gpus,
+                        num_cpus=1 if not gpus else 0,
+                        **({} if gpus else {"scheduling_strategy": NodeAffinitySchedulingStrategy(
+                            driver_node, soft=True)}))
     explorers = [spawn(ExplorerActor, f"explorer-{i}", config, num_cpus=1,
                        scheduling_strategy="SPREAD", restarts=restarts)
                  for i in range(section.explorers)]
@@ -250,8 +261,8 @@ def start_workers(ray: Any, config: TrainConfig, stream: TextIO,
 
 
 def cpus_needed(config: TrainConfig, gpus: float) -> int:
-    """CPUs the run's actors reserve: one per Explorer, one for a CPU learner."""
-    return config.ray.explorers + (0 if gpus else 1)
+    """CPUs the run's actors reserve: one per Explorer, one per CPU learner."""
+    return config.ray.explorers + (0 if gpus else config.ray.learners)
 
 
 def check_resources(ray: Any, config: TrainConfig, gpus: float) -> None:
@@ -467,10 +478,11 @@ class RayStats:
 class AsyncRun:
     """The asynchronous schedule over the actors of one run (see the module doc). Its calls go
     through the run's ActorManager (`service.actors`): a batch or an evaluation lost with its
-    actor is sent again on the restart."""
+    actor is sent again on the restart. `start`: the session's first step (a schedule of its
+    own key chain uses it; this one takes its keys from the steps)."""
 
     def __init__(self, ray: Any, config: TrainConfig, run: UEDRun, learner: RemoteLearner,
-                 workers: Workers, service: RemoteService):
+                 workers: Workers, service: RemoteService, start: int = 0):
         self.ray, self.config, self.run, self.learner, self.workers = (ray, config, run,
                                                                        learner, workers)
         self.scorers = workers.scorers()
@@ -688,21 +700,43 @@ def need_ued(config: TrainConfig) -> None:
 class RunRecord:
     """`RUN_DIR/ray.json`: written when the actors are up (`status: running`, the cluster's
     address and the actors' names, so that `tabx runs status` and `tabx runs buffer` can find
-    the run), refreshed at every logged step, and final when the run ends or stops."""
+    the run), refreshed at every logged step, and final when the run ends or stops. A logged
+    step's refresh (`background=True`) is written by a thread, off the step path; every other
+    update waits until the file holds it."""
 
     def __init__(self, path: Path):
         self.path = path
         self.data: dict[str, Any] = {}
+        self._lock = threading.Lock()
+        self._writer: threading.Thread | None = None
 
-    def update(self, **fields: Any) -> None:
+    def update(self, background: bool = False, **fields: Any) -> None:
         self.data.update(fields, updated=time.strftime("%Y-%m-%dT%H:%M:%S%z"))
-        atomic_write_json(self.path, self.data)
+        snapshot = dict(self.data)  # the values are replaced, never changed in place
+        if self._writer is not None and self._writer.is_alive():
+            if background:
+                return  # the next refresh writes it; a logged step never waits for a write
+            self._writer.join()
+        if background:
+            self._writer = threading.Thread(target=self._write, args=(snapshot,), daemon=True)
+            self._writer.start()
+        else:
+            self._write(snapshot)
+
+    def _write(self, snapshot: dict[str, Any]) -> None:
+        with self._lock:
+            atomic_write_json(self.path, snapshot)
 
 
 class RayDriver(Driver):
-    """Runs a UED run's workers as Ray actors (see the module doc)."""
+    """Runs a UED run's workers as Ray actors (see the module doc). `schedules`: the
+    asynchronous schedules other than the sequential `AsyncRun`, by `ray.schedule` name
+    (`workers.train.driver_for` adds `workers.continuous`'s)."""
 
     name = "ray"
+
+    def __init__(self, schedules: dict[str, type[AsyncRun]] | None = None):
+        self.schedules = dict(schedules or {})
 
     def check(self, config: TrainConfig) -> None:
         need_ued(config)
@@ -713,8 +747,30 @@ class RayDriver(Driver):
     def run(self, config: TrainConfig, run_dir: Path, *, resume: bool = False,
             max_updates: int | None = None, progress: bool = True,
             stream: TextIO | None = None, callback: Callback | None = None) -> Path:
+        """The run, continued from its last checkpoint after each stop for a lost actor (a
+        learner above all: Ray restarts the others in place) up to `ray.learner_restarts`
+        times (`workers.learner_group.Restarts`)."""
         need_ued(config)
         stream = sys.stderr if stream is None else stream
+        restarts = Restarts(config.ray.learner_restarts)
+        while True:
+            self.runner: RayRunner | None = None
+            try:
+                return self.session(config, run_dir, resume=resume, max_updates=max_updates,
+                                    progress=progress, stream=stream, callback=callback,
+                                    restarts=restarts)
+            except RunStopped as stopped:
+                runner = self.runner
+                if runner is None or not restarts.left():
+                    raise
+                max_updates = restarts.restart(run_dir, runner.start, runner.reached,
+                                               max_updates, stopped, stream)
+                resume = True
+
+    def session(self, config: TrainConfig, run_dir: Path, *, resume: bool,
+                max_updates: int | None, progress: bool, stream: TextIO,
+                callback: Callback | None, restarts: Restarts) -> Path:
+        """One start of the run's actors and `train_loop` over them."""
         ray, started = connect(config.ray)
         workers = None
         record = RunRecord(run_dir / RAY_RECORD)
@@ -724,10 +780,11 @@ class RayDriver(Driver):
             record.update(status="running", driver_pid=os.getpid(),
                           address=ray.get_runtime_context().gcs_address,
                           namespace=RAY_NAMESPACE,
-                          actors={name: f"{run_name}/{name}" for name in workers.names()})
-            run_dir = train_loop(RayRunner(ray, workers, config, record, stream), run_dir,
-                                 resume=resume, max_updates=max_updates, progress=progress,
-                                 stream=stream, callback=callback)
+                          actors={name: f"{run_name}/{name}" for name in workers.names()},
+                          **restarts.fields())
+            self.runner = RayRunner(ray, workers, config, record, stream, self.schedules)
+            run_dir = train_loop(self.runner, run_dir, resume=resume, max_updates=max_updates,
+                                 progress=progress, stream=stream, callback=callback)
             record.update(status="finished")
             return run_dir
         except BaseException as err:
@@ -744,7 +801,7 @@ class RayDriver(Driver):
         finally:
             if workers is not None:
                 for actor in workers.all():
-                    ray.kill(actor)
+                    actor.kill(ray) if isinstance(actor, LearnerGroup) else ray.kill(actor)
             if started:
                 ray.shutdown()
 
@@ -758,8 +815,9 @@ class RayRunner(Runner):
     explores = True
 
     def __init__(self, ray: Any, workers: Workers, config: TrainConfig, record: RunRecord,
-                 stream: TextIO):
+                 stream: TextIO, schedules: dict[str, type[AsyncRun]] | None = None):
         super().__init__(config)
+        self.schedules = {"sequential": AsyncRun, **(schedules or {})}
         self.ray, self.workers, self.record, self.stream = ray, workers, record, stream
         self.deaths = ActorDeaths(stream)  # logged even when quiet: a death is news
         # Every call to the run's actors goes through one manager (restarts, re-issue).
@@ -778,6 +836,8 @@ class RayRunner(Runner):
         self.learner: RemoteLearner | None = None
         self.asynchronous: AsyncRun | None = None
         self.chaos: Chaos | None = None
+        self._asked: tuple[Call, Call] | None = None  # the service's statistics, asked for
+        self.reached = 0  # steps done (a restart after a loss counts those since the checkpoint)
 
     @property
     def eval_every(self) -> int:
@@ -798,20 +858,36 @@ class RayRunner(Runner):
 
     def begin(self, start: int) -> None:
         ray, workers, config = self.ray, self.workers, self.config
-        self.start = start
+        self.start = self.reached = start
         self.learner = RemoteLearner(ray, workers.learner, self.version, self.actors)
         placement = workers.placement(ray)
-        self.record.update(mode="deterministic" if self.deterministic else "asynchronous",
-                           learner_gpus=workers.gpus, placement=placement, steps=[start, start],
+        group = workers.learner if isinstance(workers.learner, LearnerGroup) else None
+        self.record.update(mode=self.mode, learner_gpus=workers.gpus,
+                           learners=config.ray.learners, placement=placement, steps=[start, start],
+                           **({"learner_nodes": group.nodes(ray)} if group else {}),
                            total_steps=config.learner.num_updates)
-        self.asynchronous = None if self.deterministic else AsyncRun(
-            ray, config, self.run, self.learner, workers, self.service)
+        if self.deterministic:
+            self.asynchronous = None
+        else:
+            schedule = self.schedules.get(config.ray.schedule)
+            if schedule is None:
+                raise ConfigError(f"ray.schedule: {config.ray.schedule!r} is not among this "
+                                  f"driver's schedules ({', '.join(self.schedules)})")
+            self.asynchronous = schedule(ray, config, self.run, self.learner, workers,
+                                         self.service, start=start)
         self.chaos = Chaos(ray, config.ray, list(zip(workers.names(), workers.all(),
                                                      strict=True)), self.stream)
 
+    @property
+    def mode(self) -> str:
+        """deterministic, asynchronous (the sequential schedule) or continuous."""
+        if self.deterministic:
+            return "deterministic"
+        return "continuous" if self.config.ray.schedule == "continuous" else "asynchronous"
+
     def headline(self, run_dir: Path, start: int) -> str:
         config, workers = self.config, self.workers
-        mode = "deterministic" if self.deterministic else "asynchronous"
+        mode = self.mode
         return (f"{config.ued.method} + {config.algorithm} on Ray ({mode}, "
                 f"{len(workers.explorers)} explorers, learner "
                 f"{'GPU' if workers.gpus else 'CPU'}) in {run_dir}; "
@@ -837,16 +913,30 @@ class RayRunner(Runner):
             self.metrics = metrics
         if asynchronous is not None and checkpoint_due:
             asynchronous.drain()  # a snapshot holds every issued batch's result
+        self.reached = index + 1
         return self.run.curriculum.learns(branch)
 
     def host_metrics(self) -> dict[str, Any]:
         return dict(jax.device_get(self.metrics))
 
+    def buffer_view(self, last: bool) -> tuple[dict[str, float], int | None]:
+        """The level service's statistics and buffer size, off the step path: asked for at a
+        logged step, read at the next one (so a logged step does not wait behind the
+        service's queue); the first and the last logged step wait for them."""
+        def ask() -> tuple[Call, Call]:
+            return (self.actors.send(Call.of(SERVICE, "stats")),
+                    self.actors.send(Call.of(SERVICE, "buffer_size")))
+
+        asked = ask() if self._asked is None or last else self._asked
+        view = self.actors.get(asked[0]), self.actors.get(asked[1])
+        self._asked = None if last else ask()
+        return view
+
     def log(self, values: dict[str, Any], report: Report) -> None:
         run, asynchronous = self.run, self.asynchronous
         values.update(report.timing)
-        values.update(run.logged_metrics(self.levels))
-        buffer_size = self.service.buffer_size()  # one call to the service per log
+        stats, buffer_size = self.buffer_view(report.last)
+        values.update(run.logged_metrics(self.levels, stats))
         extra = branch_text(run.branch_counts, buffer_size)
         values["ray/driver_refs"] = float(driver_refs(self.ray))
         if asynchronous is not None:
@@ -854,7 +944,8 @@ class RayRunner(Runner):
                                                      len(asynchronous.pending)))
             extra = asynchronous.stats.text(len(self.workers.explorers), buffer_size)
         report.show(values, None, extra=extra, callback=False)
-        self.record.update(steps=[self.start, report.done], env_steps_per_s=report.rate,
+        self.record.update(background=True, steps=[self.start, report.done],
+                           env_steps_per_s=report.rate,
                            buffer_size=buffer_size, **self.schedule_fields())
         callback = report.output.callback
         if callback is not None:

@@ -19,7 +19,7 @@ import time
 from collections.abc import Callable
 from typing import Any, TextIO
 
-from workers.actor_manager import ActorDeaths, ActorManager
+from workers.actor_manager import ActorDeaths, ActorManager, Call
 from workers.durable_service import MUTATING
 
 SERVICE = "service"  # the level service's name in the run's ActorManager
@@ -40,6 +40,12 @@ class RemoteService:
         self._member = self.actors.add(SERVICE, actor, restarts=True, then=(
             "it restarts from its snapshot and commit log"))
         self.seq = 0
+        # Numbered calls sent and not yet answered, in number order: after a restart the
+        # lost ones are sent again in that order, before anything else (the service applies
+        # call n + 1 only after call n).
+        self.unanswered: list[Call] = []
+        self.by_ref: set[Call] = set()  # of them, those whose answer goes to another actor
+        self.on_restart.append(self._send_lost_again)
 
     @property
     def incarnation(self) -> int:
@@ -54,14 +60,72 @@ class RemoteService:
         if name.startswith("_"):
             raise AttributeError(name)
         if name in MUTATING:
-            def numbered(*args: Any, **kwargs: Any) -> Any:
-                self.seq += 1
-                return self.call("apply", self.seq, name, *args, **kwargs)
-            return numbered
+            return lambda *args, **kwargs: self.get(self.send(name, *args, **kwargs))
         return lambda *args, **kwargs: self.call(name, *args, **kwargs)
 
     def call(self, method: str, *args: Any, **kwargs: Any) -> Any:
         return self.actors.call(SERVICE, method, *args, **kwargs)
+
+    def send(self, method: str, *args: Any, by_ref: bool = False, **kwargs: Any) -> Call:
+        """Send the state-changing call `method(*args, **kwargs)`, numbered, without waiting:
+        its answer is awaited with `get` (or `settle`). `by_ref`: its answer goes by ref to
+        another actor and is never fetched here; the caller `forget`s it once that actor's
+        call succeeded (which proves it answered)."""
+        self.seq += 1
+        call = self._track(Call.of(SERVICE, "apply", self.seq, method, *args, **kwargs))
+        if by_ref:
+            self.by_ref.add(call)
+        return call
+
+    def forget(self, call: Call) -> None:
+        """`call` (sent `by_ref`) was answered: stop tracking it."""
+        self.by_ref.discard(call)
+        if call in self.unanswered:
+            self.unanswered.remove(call)
+
+    def send_group(self, calls: list[tuple[str, tuple, dict]], values: tuple[Call, ...] = ()
+                   ) -> Call:
+        """A group commit (`DurableLevelService.apply_many`): the state-changing calls
+        `calls` ([method, args, kwargs]; an argument `Slot(i)` stands for the result of the
+        service's call `values[i]`, levels it made), numbered, applied in order and made
+        durable with one fsync; not waited for. After a restart the levels are asked for
+        again before the group is sent again."""
+        numbered = []
+        for method, args, kwargs in calls:
+            self.seq += 1
+            numbered.append((self.seq, method, tuple(args), dict(kwargs)))
+        return self._track(Call(SERVICE, "apply_many",
+                                lambda: (numbered, *(c.ref for c in values)), after=values))
+
+    def _track(self, call: Call) -> Call:
+        self.actors.send(call)
+        self.unanswered.append(call)
+        return call
+
+    def get(self, call: Call) -> Any:
+        """The answer to a numbered call (sent again, with the lost ones before it, after a
+        restart of the service)."""
+        result = self.actors.get(call)
+        if call in self.unanswered:
+            self.unanswered.remove(call)
+        return result
+
+    def settle(self, block: bool = False) -> None:
+        """Take the answers of the numbered calls that are answered (all of them, waiting,
+        with `block`): an answer is the service's acknowledgement that the call is durable."""
+        for call in list(self.unanswered):
+            if call in self.by_ref:
+                continue
+            if not block:
+                ready, _ = self.actors.ray.wait([call.ref], timeout=0)
+                if not ready:
+                    return
+            self.get(call)
+
+    def _send_lost_again(self) -> None:
+        for call in list(self.unanswered):
+            if self.actors.lost_with_restart(call):
+                self.actors.send(call)
 
 
 class Chaos:

@@ -31,6 +31,7 @@ from ued.run_folder import (
     open_checkpoints,
     read_run_config,
 )
+from workers.continuous import ContinuousRun
 from workers.driver import Callback, Driver
 from workers.local import LocalDriver
 from workers.ray_driver import RayDriver
@@ -48,8 +49,11 @@ def finished_at(run_dir: Path, config: TrainConfig) -> int | None:
 
 
 def driver_for(config: TrainConfig) -> Driver:
-    """The driver a config asks for: Ray's with `ray.enabled`, else the local one."""
-    return RayDriver() if config.ray.enabled else LocalDriver()
+    """The driver a config asks for: Ray's with `ray.enabled` (with its continuous schedule),
+    else the local one."""
+    if not config.ray.enabled:
+        return LocalDriver()
+    return RayDriver(schedules={"continuous": ContinuousRun})
 
 
 def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = None,

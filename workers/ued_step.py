@@ -281,11 +281,12 @@ class UEDRun:
                              f"{result.mean_win_rate:.2f}\n")
                 stream.flush()
 
-    def logged_metrics(self, levels: EnvParams | None) -> dict[str, float]:
-        """What a logged step adds to its metrics: the buffer's statistics, what the
-        curriculum is serving (`levels`: the step's, None if it played none here), SFL's
-        scoring."""
-        out = dict(self.service.stats())
+    def logged_metrics(self, levels: EnvParams | None,
+                       stats: dict[str, float] | None = None) -> dict[str, float]:
+        """What a logged step adds to its metrics: the buffer's statistics (`stats`: as the
+        caller has them, else asked for now), what the curriculum is serving (`levels`: the
+        step's, None if it played none here), SFL's scoring."""
+        out = dict(self.service.stats() if stats is None else stats)
         if levels is not None:
             out.update(level_summary(levels))
         if self.sfl_scoring_steps:

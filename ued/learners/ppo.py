@@ -52,6 +52,7 @@ from tabx.jit_options import learner_jit
 from tabx.params import EnvConfig, EnvParams
 from tabx.state import EnvState
 from ued.config import LearnerConfig
+from ued.learners import distributed
 
 MASKED_LOGIT = -1e10
 START_KEY_STREAM = 0x5741  # folded into a rollout's first keys to draw its start positions
@@ -499,9 +500,22 @@ class PPOLearner:
         of them, or with 0 the most that split the envs into equal shares of each of
         `minibatches` (default: the config's) minibatches. Not `strict` (scoring batches of
         any size): at most `ppo.num_devices`, as many as divide the envs evenly. On CPU,
-        the `tabx` command makes one device per core (tabx/xla_flags.py)."""
+        the `tabx` command makes one device per core (tabx/xla_flags.py). In a learner group
+        (`ued.learners.distributed`) an update's devices are those of every process, each
+        choosing for its share of the envs; scoring stays on this process's devices."""
         if minibatches is None:
             minibatches = self.ppo.num_minibatches
+        processes = jax.process_count()
+        if strict and processes > 1:  # a learner group: the same share on every process
+            if num_envs % processes:
+                raise ValueError(f"{num_envs} envs do not split over {processes} learner "
+                                 f"processes")
+            local = self._local_devices(num_envs // processes, minibatches, strict)
+            return distributed.group_devices(len(local))
+        return self._local_devices(num_envs, minibatches, strict)
+
+    def _local_devices(self, num_envs: int, minibatches: int, strict: bool
+                       ) -> tuple[jax.Device, ...]:
         wanted = self.ppo.num_devices
         available = local_devices(wanted if strict else 0)
         if wanted and strict:
@@ -718,12 +732,17 @@ def _on_devices(fn: Any, devices: tuple[jax.Device, ...], state: Any, levels: En
                 key: jax.Array) -> Any:
     """`fn(state, levels, key)` with `state` and `key` replicated on `devices` and `levels`
     split over them by env, the results brought back to the first device (where the caller's
-    arrays live). On one device, `fn` as it is."""
+    arrays live). On one device, `fn` as it is. Over a learner group's devices the same, with
+    the arguments equal in every process and the results whole in every process."""
     if len(devices) == 1:
         return fn(state, levels, key)
     mesh = _mesh(devices)
     replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
     by_env = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(_ENVS))
+    if distributed.spans_processes(devices):  # each process places its own share
+        out = fn(distributed.to_global(state, replicated), distributed.to_global(levels, by_env),
+                 distributed.to_global(key, replicated))
+        return distributed.to_local(out, mesh, jax.local_devices()[0])
     out = fn(jax.device_put(state, replicated), jax.device_put(levels, by_env),
              jax.device_put(key, replicated))
     return jax.device_put(out, devices[0])

@@ -1,0 +1,36 @@
+"""One member process of `tabx bench train --learners N` (`tabx_bench.learner_group.run_group`
+starts N of them):
+
+    python -m tabx_bench.group_member HOST:PORT N INDEX OPTIONS_JSON OUT_JSON
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+
+def member(address: str, learners: int, index: int, options: dict[str, Any],
+           out: str) -> None:
+    """Member INDEX of a group of N: the `tabx` command's XLA settings (its share of
+    the cores as devices, set by `run_group`), then the group and the benchmark."""
+    from tabx import xla_flags
+
+    xla_flags.apply()
+    from ued.learners import distributed
+
+    distributed.join(address, learners, index)
+    from tabx_bench.train import run_train_bench  # after the group: JAX starts there
+
+    result = run_train_bench(**options, learners=learners)
+    if index == 0:
+        Path(out).write_text(json.dumps(dataclasses.asdict(result)))
+    distributed.leave()
+
+
+if __name__ == "__main__":
+    _address, _learners, _index, _options, _out = sys.argv[1:]
+    member(_address, int(_learners), int(_index), json.loads(_options), _out)

@@ -1,0 +1,97 @@
+"""`tabx sweep SPEC` and `tabx sweep report SWEEP_DIR`: experiments of many runs.
+
+    tabx sweep configs/sweeps/smoke_ued.yaml                 # run it on a Ray started here
+    tabx sweep configs/sweeps/smoke_ued.yaml --resume        # finish what a killed sweep left
+    tabx sweep sweeps/paper_ued --address auto               # on the cluster this machine is in
+    tabx sweep report sweeps/smoke_ued                       # its tables and learning curves
+
+The sweep file is `ued.sweep_spec`'s, the scheduling `workers.sweep`'s (Ray Tune), the report
+`ued.sweep_report`'s; docs/experiments.md walks from one run to the paper's table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+
+from ued.errors import ConfigError
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    from ued.sweep_spec import read_sweep_spec
+
+    spec = read_sweep_spec(args.spec, args.overrides)  # every error before anything starts
+    if args.cpus is not None or args.gpus is not None:
+        resources = dataclasses.replace(
+            spec.resources, **{k: float(v) for k, v in (("cpus", args.cpus),
+                                                         ("gpus", args.gpus)) if v is not None})
+        if resources.cpus < 0 or resources.gpus < 0 or resources.cpus + resources.gpus == 0:
+            raise ConfigError("--cpus, --gpus: a trial needs some CPUs or a GPU fraction")
+        spec = dataclasses.replace(spec, resources=resources)
+    from workers.sweep import run_sweep
+
+    outcome = run_sweep(spec, None if args.dir is None else f"{args.dir}/{spec.name}",
+                        resume=args.resume, address=args.address, num_cpus=args.num_cpus,
+                        table_every_s=args.table_every)
+    done = len(outcome.finished) + len(outcome.skipped)
+    print(f"{outcome.folder}: {done} of {len(spec.trials)} trials finished"
+          + (f", {len(outcome.failed)} failed ({', '.join(outcome.failed)})"
+             if outcome.failed else "")
+          + (f", {len(outcome.stopped)} stopped" if outcome.stopped else "")
+          + f"; tabx sweep report {outcome.folder}")
+    return 0 if outcome.ok else 1
+
+
+def cmd_sweep_report(args: argparse.Namespace) -> int:
+    from ued.sweep_report import write_report
+
+    written = write_report(args.sweep_dir, out=args.out, partial=args.partial,
+                           stream=sys.stderr)
+    print(written.markdown.read_text(), end="")
+    print(f"written: {', '.join(str(p) for p in written.files())}", file=sys.stderr)
+    return 0
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "sweep", help="run a sweep file's trials with Ray Tune (tabx sweep report: its tables)",
+        description="Run every trial of a sweep file (a base config and axes over config keys: "
+                    "docs/experiments.md) as an ordinary run folder under the sweep folder, "
+                    "scheduled with Ray Tune on this machine or a cluster (--address). "
+                    "`tabx sweep report SWEEP_DIR` makes its tables and figures.")
+    p.add_argument("spec", metavar="SPEC", help="sweep file or shipped sweep name "
+                                                "(sweeps/smoke_ued)")
+    p.add_argument("overrides", nargs="*", metavar="KEY=VALUE",
+                   help="config overrides for every trial (after the file's `set`)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the sweep: finished trials are kept, the others continue "
+                        "from their newest checkpoint")
+    p.add_argument("--address", metavar="ADDRESS",
+                   help="join a running Ray cluster (auto, or HOST:PORT) instead of starting "
+                        "Ray here")
+    p.add_argument("--dir", metavar="DIR",
+                   help="the folder the sweep folder goes in (default: the file's `dir`)")
+    p.add_argument("--cpus", type=float, metavar="N",
+                   help="CPUs each trial holds (in place of the file's resources.cpus)")
+    p.add_argument("--gpus", type=float, metavar="F",
+                   help="GPU fraction each trial holds (in place of resources.gpus; 0.5: two "
+                        "trials share a GPU)")
+    p.add_argument("--num-cpus", type=int, metavar="N",
+                   help="CPUs of the Ray started here (default: all)")
+    p.add_argument("--table-every", type=float, default=30.0, metavar="S",
+                   help="seconds between tables when the output is not a terminal (default 30)")
+    p.set_defaults(func=cmd_sweep)
+
+
+def add_route_parser(sub: argparse._SubParsersAction) -> None:
+    """`report` under `tabx sweep` (a route of `tabx_ued.commands`)."""
+    p = sub.add_parser("report", help="a sweep's tables (Markdown, CSV) and learning curves")
+    p.add_argument("sweep_dir", metavar="SWEEP_DIR")
+    p.add_argument("--out", metavar="DIR", help="where to write (default SWEEP_DIR/report)")
+    p.add_argument("--partial", action="store_true",
+                   help="report the finished trials of an incomplete sweep")
+    p.set_defaults(func=cmd_sweep_report)
+
+
+__all__ = ["add_parser", "add_route_parser", "cmd_sweep", "cmd_sweep_report"]

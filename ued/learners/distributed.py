@@ -1,0 +1,130 @@
+"""One PPO update over the devices of several processes: JAX's multi-process runtime.
+
+A learner group is N processes (on one machine or many) that each call
+
+    distributed.join(coordinator="HOST:PORT", num_processes=N, process_id=i)
+
+before JAX starts its backend, then run the same program: the same `learner.init(key)`, then
+`learner.update(train_state, levels, key)` with the same arguments in every process. Process 0
+hosts the coordinator at HOST:PORT (a port free on its node). After `join`, the learner's
+data-parallel update (`PPOLearner.learner_devices`, ued/learners/ppo.py) runs over a global
+mesh of every process's devices: each process puts only its own share of the envs on its
+devices (`to_global`), plays those envs, and the gradients and statistics are reduced across
+processes by XLA's collectives inside the one jitted program (the `psum`s of the update),
+over gloo between CPU processes and NCCL between GPUs; nothing else differs. The results
+come back whole in every process (`to_local`): the parameters are replicated by
+construction, and the per-env rollout statistics are gathered by one more XLA collective.
+
+Process p's devices hold envs [p * E / N, (p + 1) * E / N) of the batch, in the order of the
+global mesh (every process's devices, process 0's first), the split that one process with
+all the devices makes: so 2 processes x 1 device compute what 1 process x 2 devices does.
+
+Failures: a process that dies (SIGKILL, OOM) stops answering the coordinator's heartbeats;
+after `heartbeat_timeout_s` the coordination service ends the other processes, whose
+collective would otherwise wait for ever. A group is never repaired in place: whoever runs
+it starts a new one (workers/learner_group.py restarts a Ray learner group from the last
+checkpoint).
+"""
+
+from __future__ import annotations
+
+import functools
+import socket
+from typing import Any
+
+import jax
+import numpy as np
+
+JOIN_TIMEOUT_S = 120  # for every process of the group to reach the coordinator
+HEARTBEAT_TIMEOUT_S = 10  # a process silent this long is dead: the group stops
+
+
+def join(coordinator: str, num_processes: int, process_id: int, *,
+         timeout_s: int = JOIN_TIMEOUT_S, heartbeat_timeout_s: int = HEARTBEAT_TIMEOUT_S,
+         local_device_ids: list[int] | None = None) -> None:
+    """Make this process member `process_id` of a group of `num_processes` whose coordinator
+    is at `coordinator` (HOST:PORT; process 0 starts it there). Call before any JAX
+    computation; blocks until every member has joined (at most `timeout_s`). One process
+    (`num_processes` 1) joins nothing."""
+    if num_processes < 1 or not 0 <= process_id < num_processes:
+        raise ValueError(f"process {process_id} of {num_processes}: expected 0 <= id < n")
+    if num_processes == 1:
+        return
+    # The CPU client's collectives between processes; GPUs use NCCL whatever this says.
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes,
+                               process_id=process_id, local_device_ids=local_device_ids,
+                               initialization_timeout=int(timeout_s),
+                               heartbeat_timeout_seconds=int(heartbeat_timeout_s),
+                               shutdown_timeout_seconds=int(heartbeat_timeout_s))
+
+
+def leave() -> None:
+    """Leave the group (a no-op outside one)."""
+    if jax.process_count() > 1:
+        jax.distributed.shutdown()
+
+
+def free_address(host: str = "127.0.0.1") -> str:
+    """HOST:PORT with a port free on this machine now: for a coordinator that starts here."""
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return f"{host}:{s.getsockname()[1]}"
+
+
+def group_devices(per_process: int) -> tuple[jax.Device, ...]:
+    """The first `per_process` devices of every process of the group, process 0's first:
+    the global mesh's order (module doc)."""
+    devices: list[jax.Device] = []
+    for p in range(jax.process_count()):
+        mine = sorted((d for d in jax.devices() if d.process_index == p), key=lambda d: d.id)
+        if len(mine) < per_process:
+            raise ValueError(f"learner.num_devices: process {p} has {len(mine)} devices, "
+                             f"{per_process} asked for")
+        devices.extend(mine[:per_process])
+    return tuple(devices)
+
+
+def spans_processes(devices: tuple[jax.Device, ...]) -> bool:
+    """Whether `devices` include another process's (a group's global mesh)."""
+    here = jax.process_index()
+    return any(d.process_index != here for d in devices)
+
+
+def to_global(tree: Any, sharding: jax.sharding.Sharding) -> Any:
+    """`tree`, whole and equal in every process, as global arrays with `sharding`: each
+    process puts only the parts its own devices hold."""
+    def one(x: Any) -> jax.Array:
+        if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key):
+            impl = jax.random.key_impl(x)
+            data = to_global(jax.random.key_data(x), sharding)
+            return jax.random.wrap_key_data(data, impl=impl)
+        host = np.asarray(x)
+        return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
+
+    return jax.tree.map(one, tree)
+
+
+@functools.lru_cache(maxsize=8)
+def _gather(mesh: jax.sharding.Mesh) -> Any:
+    """The jitted identity whose results are replicated over `mesh` (one per mesh, so its
+    compiled programs are reused)."""
+    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+    return jax.jit(lambda xs: xs, out_shardings=replicated)
+
+
+def to_local(tree: Any, mesh: jax.sharding.Mesh, device: jax.Device) -> Any:
+    """Global arrays of `tree` whole on this process's `device`: a replicated array's local
+    copy; a split one gathered first (an XLA all-gather, which every process runs)."""
+    leaves, treedef = jax.tree.flatten(tree)
+    split = [i for i, x in enumerate(leaves) if not x.is_fully_replicated]
+    if split:
+        gathered = _gather(mesh)([leaves[i] for i in split])
+        for i, x in zip(split, gathered, strict=True):
+            leaves[i] = x
+    return jax.device_put(jax.tree.unflatten(treedef, [x.addressable_data(0) for x in leaves]),
+                          device)
+
+
+__all__ = ["HEARTBEAT_TIMEOUT_S", "JOIN_TIMEOUT_S", "free_address", "group_devices", "join",
+           "leave", "spans_processes", "to_global", "to_local"]

@@ -1,0 +1,248 @@
+"""The Ray driver's continuous schedule (`ray.schedule: continuous`): Explorers score new levels
+without pause while the learner takes a gradient step at every curriculum step.
+
+For the curricula that score levels they do not train on (Robust PLR, ACCEL):
+
+    Explorers   each keeps `ray.max_inflight` batches of fresh levels (ACCEL: the children of
+                the newest replay batches first) in flight, scored with the newest policy the
+                learner has published; a result is committed as it arrives, unless its policy
+                is more than `ray.max_policy_lag` versions old (then it is scored again)
+    learner     every step is a replay step: it trains on a batch the level service drew,
+                handed to it by ref (the levels never pass through the driver); the step
+                waits until the buffer holds `ued.min_fill_ratio` of its capacity
+    driver      while the learner trains it commits Explorer results and refills Explorers;
+                the next replay batch is drawn while the current one trains; the results that
+                arrived together are committed in one call and one fsync (a group commit,
+                `DurableLevelService.apply_many`); replay scores are sent without waiting,
+                and every numbered call is acknowledged before a snapshot
+
+What differs from the papers' sequential algorithm (and `ray.schedule: sequential`): no coin
+decides between a new and a replay step (`ued.replay_prob` is not used): the learner replays
+at every step and the ratio of scored new levels to replayed ones is the Explorers' throughput
+over the learner's; a replay batch is drawn one update ahead, so it does not see the scores of
+the batch being trained; new levels are scored by a policy up to `ray.max_policy_lag` versions
+old; ACCEL mutates each replay batch as it was drawn (a parent evicted since still has its
+children). Curricula that train on every batch (DR, PLR, SFL) keep the sequential schedule's
+steps: there is nothing to score apart from training.
+
+Every Explorer batch is committed exactly once: numbered like every state-changing call
+(`workers.ray_restarts.RemoteService`), re-issued with the current policy when its Explorer
+dies, its levels asked for again when the service dies (`AsyncRun`'s restart hooks).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import Counter, deque
+from typing import Any
+
+import jax
+
+from level_buffer import Source
+from ued.config import TrainConfig
+from ued.curricula import ACCEL, Branch
+from workers.actor_manager import Call
+from workers.durable_service import Slot
+from workers.ray_driver import AsyncRun, Batch, RemoteLearner, Workers
+from workers.ray_restarts import SERVICE, RemoteService
+from workers.ued_step import LevelRequest, UEDRun
+
+BACKGROUND_KEY = 0xC0471  # folded into the seed: the key chain of the Explorers' batches
+KEY_BLOCK = 256  # Explorer batches whose keys one JAX call makes
+
+
+class ContinuousRun(AsyncRun):
+    """The continuous schedule over the actors of one run (module doc); `start`: the first
+    step of this session (it seeds the key chain of the Explorers' batches)."""
+
+    def __init__(self, ray: Any, config: TrainConfig, run: UEDRun, learner: RemoteLearner,
+                 workers: Workers, service: RemoteService, start: int = 0):
+        super().__init__(ray, config, run, learner, workers, service, start)
+        curriculum = run.curriculum
+        # Robust PLR and ACCEL score new levels without training on them: those scores run
+        # without pause. Curricula that train on every batch keep the sequential steps.
+        self.scores_apart = any(not curriculum.learns(b) for b in curriculum.branches)
+        self.mutates = isinstance(curriculum, ACCEL)
+        self.requests: deque[tuple[LevelRequest, Call]] = deque()  # ACCEL children waiting
+        self.key = jax.random.fold_in(jax.random.key(config.seed ^ BACKGROUND_KEY), start)
+        self.issued = 0  # Explorer batches issued this session
+        self.batches: dict[int, str] = {}  # Explorer batch -> "issued" | "committed"
+        self.next_replay: Call | None = None  # drawn while the learner trains
+        self.filled = False  # the buffer reached its minimum fill ratio (it never shrinks)
+        self.group_commits = 0
+        self.paused = False  # no new Explorer batches (while draining)
+        self._key_block: tuple[int, list[jax.Array]] = (-1, [])
+
+    # Explorers: kept busy -------------------------------------------------------------------
+
+    def top_up(self) -> None:
+        """Give every Explorer with room a batch: ACCEL's children first, else fresh levels."""
+        if self.paused:
+            return
+        limit = self.config.ray.max_inflight
+        for i in sorted(range(len(self.scorers)), key=lambda i: self.inflight[i]):
+            if not self.actors.available(self.names[i]):
+                continue
+            while self.inflight[i] < limit:
+                self.issue(i)
+
+    def batch_keys(self, batch: int) -> tuple[jax.Array, jax.Array]:
+        """(levels key, rollout key) of Explorer batch number `batch`: split by blocks of
+        KEY_BLOCK batches (one JAX call per block, not per batch: the driver's CPU)."""
+        block, index = divmod(batch, KEY_BLOCK)
+        if self._key_block[0] != block:
+            keys = jax.random.split(jax.random.fold_in(self.key, block), 2 * KEY_BLOCK)
+            self._key_block = (block, list(keys))
+        keys = self._key_block[1]
+        return keys[2 * index], keys[2 * index + 1]
+
+    def issue(self, i: int) -> None:
+        n = self.config.learner.num_envs
+        k_levels, key = self.batch_keys(self.issued)
+        if self.requests:
+            request, levels = self.requests.popleft()
+        else:
+            request = LevelRequest("fresh", (k_levels, n), Source.RANDOM)
+            levels = self.actors.send(Call.of(SERVICE, "fresh", k_levels, n))
+        batch = Batch(self.issued, request, key, self.learner.version, i, levels)
+        score = self.config.ued.score
+        batch.score = Call(self.names[i], "score_levels",
+                           lambda: (self.learner.params, levels.ref, key, score, None, None),
+                           then="its batches are re-issued with the current policy on its "
+                                "restart", after=(levels,))
+        self.batches[self.issued] = "issued"
+        self.issued += 1
+        self._submit(batch)
+
+    def collect(self, block: bool) -> None:
+        """Commit every Explorer result that is ready (waiting for one if `block`), in one
+        group commit; refill the Explorers; take the service's acknowledgements."""
+        if self.pending:
+            t0 = time.perf_counter()
+            refs = list(self.pending)
+            first: list[Any] = []
+            if block:
+                first, _ = self.ray.wait(refs, num_returns=1)
+                self.stats.wait_for_levels_s += time.perf_counter() - t0
+            ready, _ = self.ray.wait(refs, num_returns=len(refs), timeout=0)
+            ready = [*first, *(ref for ref in ready if ref not in first)]
+            try:  # one call for all of them; where one failed, each on its own
+                results: list[Any] = self.ray.get(ready)
+            except Exception:
+                results = [None] * len(ready)
+            group = []
+            for ref, result in zip(ready, results, strict=True):
+                batch = self.pending.pop(ref)
+                self.inflight[batch.explorer] -= 1
+                try:
+                    _, scores, best = self.ray.get(ref) if result is None else result
+                except Exception as err:
+                    self.reissue(batch, err)
+                    continue
+                batch.score.failures = 0
+                lag = self.learner.version - batch.version
+                if lag > self.config.ray.max_policy_lag:
+                    self.stats.rescored += 1
+                    batch.rescored += 1
+                    self._submit(batch)
+                    continue
+                group.append((batch, scores, best, lag))
+            if group:
+                self.commit_group(group)
+        if self.scores_apart:
+            self.top_up()
+        self.service.settle(block=False)
+
+    def commit_group(self, group: list[tuple[Batch, Any, Any, int]]) -> None:
+        """Offer the scored batches of `group` to the buffer in one call (one fsync)."""
+        calls = []
+        for j, (batch, scores, best, lag) in enumerate(group):
+            request = batch.request
+            calls.append(("insert", (Slot(j), scores, best, batch.version, request.source),
+                          {"parent_ids": request.parent_ids}))
+            self.batches[batch.step] = "committed"
+            self.stats.committed += 1
+            self.stats.staleness[lag] += 1
+            self.recent_lags.append(lag)
+            self.stats.explored_steps += self.config.learner.steps_per_update
+        levels = tuple(batch.levels for batch, *_ in group)
+        self.service.send_group(calls, levels)
+        self.group_commits += 1
+
+    def drain(self) -> None:
+        """Wait for every batch in flight and every acknowledgement (before a snapshot)."""
+        self.paused = True
+        try:
+            while self.pending:
+                self.collect(block=True)
+            self.service.settle(block=True)
+        finally:
+            self.paused = False
+
+    def record(self) -> dict[str, Any]:
+        return {**super().record(), "schedule": "continuous",
+                "explorer_batches": dict(Counter(self.batches.values())),
+                "group_commits": self.group_commits}
+
+    # The learner: a replay step at every step -----------------------------------------------
+
+    def wait_until_filled(self) -> None:
+        """Commit Explorer results until the buffer holds its minimum fill ratio."""
+        ued = self.config.ued
+        need = max(1, math.ceil(ued.min_fill_ratio * ued.buffer_size))
+        while not self.filled:
+            self.service.settle(block=True)
+            if (self.service.buffer_size() or 0) >= need:
+                self.filled = True
+                return
+            self.top_up()
+            self.collect(block=True)
+
+    def serve_until(self, call: Call) -> None:
+        """Commit Explorer results and refill the Explorers until `call` is answered."""
+        while True:
+            self.top_up()
+            ready, _ = self.ray.wait([call.ref, *self.pending], num_returns=1)
+            if ready and ready[0] == call.ref:
+                return
+            if self.ray.wait([call.ref], timeout=0)[0]:
+                return
+            self.collect(block=False)
+
+    def step(self, step: int, key: jax.Array) -> tuple[Branch, dict[str, Any] | None, Any]:
+        """Curriculum step `step`: a replay step on the learner, with the Explorers kept busy
+        meanwhile (a curriculum that trains on every batch: the sequential steps)."""
+        if not self.scores_apart:
+            return super().step(step, key)
+        self.top_up()
+        self.collect(block=False)
+        self.wait_until_filled()
+        n, score = self.config.learner.num_envs, self.config.ued.score
+        k_roll, k_edit = jax.random.split(key)
+        replay = self.next_replay or self.service.send("replay", n, by_ref=True)
+        version = self.learner.version
+        train = self.actors.send(Call("learner", "train_replay",
+                                      lambda: (replay.ref, k_roll, score), after=(replay,)))
+        # The next batch is drawn while this one trains (it does not see this one's scores).
+        self.next_replay = self.service.send("replay", n, by_ref=True)
+        t0 = time.perf_counter()
+        self.serve_until(train)
+        metrics, ids, scores, best = self.actors.get(train)
+        self.stats.learner_busy_s += time.perf_counter() - t0
+        self.stats.trained_steps += self.config.learner.steps_per_update
+        self.learner.version += 1
+        self.ledger[step] = "committed"
+        self.service.forget(replay)  # answered: the learner trained on its result
+        self.service.send("update", ids, scores, best, version)
+        self.run.curriculum.observe(Branch.REPLAY, ids)
+        if self.mutates:  # the children of this batch, next in line for an Explorer
+            levels = self.actors.send(Call(SERVICE, "mutate_replay",
+                                           lambda: (k_edit, replay.ref), after=(replay,)))
+            self.requests.append((LevelRequest("mutate_replay", (k_edit,), Source.MUTATION,
+                                               ids), levels))
+        metrics = UEDRun.step_metrics(metrics, Branch.REPLAY, True, self.learner.version)
+        return Branch.REPLAY, metrics, None
+
+
+__all__ = ["ContinuousRun"]

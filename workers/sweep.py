@@ -1,0 +1,273 @@
+"""`tabx sweep SPEC`: the trials of a sweep file scheduled with Ray Tune, each an ordinary run.
+
+    from ued.sweep_spec import read_sweep_spec
+    from workers.sweep import run_sweep
+    outcome = run_sweep(read_sweep_spec("configs/sweeps/smoke_ued.yaml"))
+
+Each trial is a function trainable (`workers.sweep_trial.run_trial`) holding the sweep file's
+`resources` (a placement group: the trial's CPUs and GPU fraction, one more CPU per Explorer),
+that trains its run folder under the sweep folder (`ued.sweep_folder`) with the one training
+entry, `workers.train.train`. Tune runs as many at once as the resources allow (or
+`max_concurrent`): on a Ray started here by default, or on the cluster at `address`.
+
+Resuming is the sweep folder's, not Tune's experiment state: `resume=True` submits the trials
+that are not finished (their record and their run folder agree), and each continues from its
+run folder's newest checkpoint; finished trials are not run again. A trial that fails for a
+config or a file fails alone (its record holds the error, the table shows it); an exception
+of another kind (a lost node, a killed process) makes Tune retry the trial from its last
+checkpoint, up to `max_failures` times.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import sys
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+from ued.config import ConfigError
+from ued.sweep_folder import SweepFolder
+from ued.sweep_spec import SweepSpec
+from workers.sweep_table import SweepTable
+
+MAX_FAILURES = 2  # Tune's retries of a trial that raised (not a failed config: that is final)
+
+
+@dataclass
+class SweepOutcome:
+    """What a sweep session did."""
+
+    folder: Path
+    finished: list[str] = field(default_factory=list)
+    failed: dict[str, str] = field(default_factory=dict)  # trial -> its error
+    skipped: list[str] = field(default_factory=list)  # finished before this session
+    stopped: list[str] = field(default_factory=list)  # not finished (the sweep was stopped)
+
+    @property
+    def ok(self) -> bool:
+        return not self.failed and not self.stopped
+
+
+def is_finished(folder: SweepFolder, trial: str) -> bool:
+    """A trial whose record says finished and whose run folder has its last checkpoint."""
+    if folder.record(trial).state != "finished":
+        return False
+    from ued.run_folder import read_run_config
+    from workers.train import finished_at
+
+    run_dir = folder.run_dir(trial)
+    try:
+        return finished_at(run_dir, read_run_config(run_dir)) is not None
+    except Exception:  # noqa: BLE001 - a damaged or missing run folder is not finished
+        return False
+
+
+def worker_env(spec: SweepSpec) -> dict[str, str]:
+    """The environment of the trials' processes: JAX on the CPU unless a trial holds a GPU
+    (and then no preallocation, since trials may share one), and one XLA CPU device per CPU
+    the trial holds (`tabx.xla_flags`: the learner splits its envs over them)."""
+    flags = [f for f in os.environ.get("XLA_FLAGS", "").split()
+             if not f.startswith("--xla_force_host_platform_device_count")]
+    cpus = int(spec.resources.cpus)
+    if cpus > 1:
+        flags.append(f"--xla_force_host_platform_device_count={cpus}")
+    env = {"XLA_FLAGS": " ".join(flags), "TABX_KEEP_XLA_FLAGS": "1"}
+    if spec.resources.gpus == 0:
+        env["JAX_PLATFORMS"] = "cpu"
+    else:
+        env["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
+    for name in ("PYTHONPATH", "TABX_COMPILE_CACHE_DIR", "RAY_USAGE_STATS_ENABLED"):
+        if os.environ.get(name):
+            env[name] = os.environ[name]
+    return env
+
+
+def connect(spec: SweepSpec, address: str | None, num_cpus: int | None) -> tuple[Any, bool]:
+    """Ray, connected to `address` or started here; (ray, whether this call started it)."""
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    # Tune's own console output: the sweep draws its table instead.
+    os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")
+    try:
+        import ray
+        from ray import tune  # noqa: F401 - fail here, with the install hint, if absent
+    except ImportError:
+        raise ConfigError("tabx sweep needs Ray Tune: pip install -e '.[ray]'") from None
+    if ray.is_initialized():
+        return ray, False
+    kwargs: dict[str, Any] = {"logging_level": "ERROR", "log_to_driver": False,
+                              "runtime_env": {"env_vars": worker_env(spec)}}
+    if address:
+        from workers.ray_driver import check_reachable
+
+        if address != "auto":
+            check_reachable(address)
+        kwargs["address"] = address
+    else:
+        kwargs.update(address="local", include_dashboard=False)
+        if num_cpus:
+            kwargs["num_cpus"] = num_cpus
+    logging.getLogger("ray._private.authentication.authentication_token_setup").setLevel(
+        logging.ERROR)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called",
+                                category=RuntimeWarning)
+        try:
+            ray.init(**kwargs)
+        except ConnectionError as err:
+            raise ConfigError(f"--address: cannot join the cluster at {address!r} ({err}); a "
+                              "cluster started with `ray start` checks a token: set "
+                              "RAY_AUTH_MODE=token and give this machine its "
+                              "~/.ray/auth_token") from None
+    return ray, True
+
+
+def _table_callback(table: SweepTable) -> Any:
+    from ray.tune import Callback
+
+    class TableCallback(Callback):
+        """Tune's trial events -> the sweep's table."""
+
+        def on_trial_start(self, iteration, trials, trial, **info):
+            table.update(trial.config["trial"], state="running")
+
+        def on_trial_result(self, iteration, trials, trial, result, **info):
+            name = trial.config["trial"]
+            values: dict[str, Any] = {}
+            for key, attr in (("steps", "steps"), ("total_steps", "total_steps"),
+                              ("steps_per_s", "steps_per_s"), ("win_rate", "win_rate"),
+                              ("eta_s", "reported_eta_s")):
+                value = result.get(key)
+                if isinstance(value, int | float) and math.isfinite(value):
+                    values[attr] = int(value) if attr.endswith("steps") else float(value)
+            if result.get("failed"):
+                values.update(state="failed", error=str(result.get("error", "")))
+            table.update(name, **values)
+
+        def on_trial_complete(self, iteration, trials, trial, **info):
+            name = trial.config["trial"]
+            if table.rows[name].state != "failed":
+                row = table.rows[name]
+                table.update(name, state="finished", steps=row.total_steps or row.steps)
+
+        def on_trial_error(self, iteration, trials, trial, **info):
+            table.update(trial.config["trial"], state="error",
+                         error=_error_line(trial))
+
+        def on_trial_recover(self, iteration, trials, trial, **info):
+            table.update(trial.config["trial"], state="retrying", error=_error_line(trial))
+
+        def on_step_end(self, iteration, trials, **info):
+            table.draw()
+
+    return TableCallback()
+
+
+def _error_line(trial: Any) -> str:
+    """The last line of a Tune trial's error (its traceback's exception)."""
+    text = ""
+    path = getattr(trial, "error_file", None) or ""
+    try:
+        text = Path(path).read_text() if path else ""
+    except OSError:
+        text = ""
+    text = text or str(getattr(trial, "error_msg", "") or "")
+    lines = [line.strip() for line in text.strip().splitlines() if line.strip()]
+    return lines[-1][:300] if lines else "failed (no error text)"
+
+
+def run_sweep(spec: SweepSpec, folder: str | Path | None = None, *, resume: bool = False,
+              address: str | None = None, num_cpus: int | None = None,
+              stream: TextIO | None = None, table_every_s: float = 30.0,
+              reuse_processes: bool = False) -> SweepOutcome:
+    """Run (or, with `resume`, continue) the sweep `spec` in `folder` (default: the sweep
+    file's own, `SweepSpec.folder`); the table goes to `stream` (default stderr).
+    `reuse_processes`: a trial process runs the next trial when its own ends (Tune's
+    `reuse_actors`), which saves starting a process and importing JAX per trial: for many
+    short trials (tests). Off by default: a process keeps what JAX compiled for every trial it
+    ran."""
+    out = sys.stderr if stream is None else stream
+    sweep = SweepFolder(spec.folder() if folder is None else folder)
+    if resume and not sweep.exists():
+        raise ConfigError(f"{sweep.path}: no sweep to resume (no sweep.json); start it "
+                          f"without --resume")
+    sweep.write(spec, resume=resume)
+    outcome = SweepOutcome(sweep.path)
+    pending = []
+    for trial in spec.trials:
+        if resume and is_finished(sweep, trial.name):
+            outcome.skipped.append(trial.name)
+        else:
+            pending.append(trial)
+    table = SweepTable([t.name for t in spec.trials], stream=out, every_s=table_every_s)
+    for name in outcome.skipped:
+        record = sweep.record(name)
+        table.rows[name].state, table.rows[name].steps = "done", record.total_steps
+        table.rows[name].total_steps = record.total_steps
+    if outcome.skipped:
+        out.write(f"{sweep.path}: {len(outcome.skipped)} of {len(spec.trials)} trials finished "
+                  f"before; {len(pending)} to run\n")
+    if not pending:
+        out.write(f"{sweep.path}: every trial is finished; `tabx sweep report {sweep.path}`\n")
+        return outcome
+
+    ray, started = connect(spec, address, num_cpus)
+    try:
+        from ray import tune
+
+        from workers.sweep_trial import run_trial
+
+        trainable = tune.with_parameters(
+            run_trial, sweep_dir=str(sweep.path.resolve()),
+            configs={t.name: t.config.to_yaml() for t in pending})
+        trainable = tune.with_resources(trainable,
+                                        tune.PlacementGroupFactory(spec.resources.bundles()))
+        names = [t.name for t in pending]
+        tuner = tune.Tuner(
+            trainable,
+            param_space={"trial": tune.grid_search(names)},
+            tune_config=tune.TuneConfig(
+                max_concurrent_trials=spec.max_concurrent or None,
+                reuse_actors=reuse_processes,
+                trial_name_creator=lambda t: t.config["trial"],
+                trial_dirname_creator=lambda t: t.config["trial"]),
+            run_config=tune.RunConfig(
+                name=f"session-{time.strftime('%Y%m%d-%H%M%S')}",
+                storage_path=str(sweep.tune_dir.resolve()),
+                verbose=0, callbacks=[_table_callback(table)],
+                failure_config=tune.FailureConfig(max_failures=MAX_FAILURES)))
+        table.draw(force=True)
+        results = tuner.fit()
+    finally:
+        if started:
+            ray.shutdown()
+    for result in results:
+        name = result.config["trial"]
+        record = sweep.record(name)
+        if result.error is not None:
+            outcome.failed[name] = record.error or _result_error(result)
+        elif record.state == "failed":
+            outcome.failed[name] = record.error
+        elif record.state == "finished":
+            outcome.finished.append(name)
+        else:  # Ctrl-C: Tune ends the session with the trials where they are
+            outcome.stopped.append(name)
+    table.draw(force=True)
+    for name, error in outcome.failed.items():
+        out.write(f"trial {name} failed: {error} (log: {sweep.log_path(name)})\n")
+    if outcome.stopped:
+        out.write(f"{len(outcome.stopped)} trials stopped before their end; `tabx sweep SPEC "
+                  f"--resume` continues them\n")
+    return outcome
+
+
+def _result_error(result: Any) -> str:
+    lines = [line for line in str(result.error).strip().splitlines() if line.strip()]
+    return lines[-1].strip()[:300] if lines else "failed"
+
+
+__all__ = ["MAX_FAILURES", "SweepOutcome", "connect", "is_finished", "run_sweep", "worker_env"]
