@@ -650,7 +650,8 @@ def _blame_override(err: ConfigError, source: str, overrides: Sequence[str]) -> 
         key = item.partition("=")[0].strip()
         key = paths[key][0] if "." not in key and len(paths.get(key, [])) == 1 else key
         if inner.startswith(f"{key}: ") or inner.startswith(f"{key}["):
-            return ConfigError(f"override {item!r}: {inner}")
+            shown = repr(item) if len(item) <= 100 else f"{item[:80]!r}..."
+            return ConfigError(f"override {shown}: {inner}")
     return err
 
 
