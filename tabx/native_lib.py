@@ -21,6 +21,7 @@ import hashlib
 import os
 import shlex
 import subprocess
+import sys
 import tempfile
 import threading
 import warnings
@@ -42,9 +43,20 @@ class NativeBuildError(RuntimeError):
     """The native library could not be built or loaded."""
 
 
+NATIVE_OFF = ("0", "false", "no", "off")
+NATIVE_ON = ("", "1", "true", "yes", "on")
+
+
 def native_enabled() -> bool:
-    """False when the user turned the native kernels off (`TABX_NATIVE=0`)."""
-    return os.environ.get("TABX_NATIVE", "1").strip().lower() not in ("0", "false", "no", "off")
+    """False when the user turned the native kernels off (`TABX_NATIVE=0`). Any other value
+    than those of NATIVE_OFF and NATIVE_ON is named in one warning line (once) and leaves
+    them on."""
+    value = os.environ.get("TABX_NATIVE", "1").strip().lower()
+    if value not in NATIVE_OFF + NATIVE_ON and not _state.get(f"warned {value}"):
+        _state[f"warned {value}"] = True
+        print(f"warning: TABX_NATIVE={os.environ['TABX_NATIVE']!r:.40}: expected 1 or 0 "
+              "(on or off); the native kernels stay on", file=sys.stderr)
+    return value not in NATIVE_OFF
 
 
 def cache_dir() -> Path:

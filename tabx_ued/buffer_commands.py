@@ -166,7 +166,9 @@ def summary(buf: LevelBuffer, name: str, size_bytes: int) -> str:
                      f"{known.max()}; most levels: "
                      + ", ".join(f"v{v} ({c})" for v, c in common)
                      + (f"; {versions.size - known.size} unknown" if known.size < versions.size
-                        else ""))
+                        else "")
+                     + " (the policy's gradient updates when it scored the level, not the "
+                       "run's update count: steps that only score new levels add none)")
     else:
         lines.append("policy versions: none recorded")
     return "\n".join(lines)

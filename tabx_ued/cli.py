@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import subprocess
 import sys
 from collections.abc import Callable, Iterable, Mapping
 
@@ -49,6 +50,15 @@ def build_parser(registrars: Iterable[Registrar]) -> argparse.ArgumentParser:
     sub.required = True
     for add in registrars:
         add(sub)
+    return parser
+
+
+def command_parser(parser: argparse.ArgumentParser, command: str | None
+                   ) -> argparse.ArgumentParser:
+    """The parser of `command` among `parser`'s subcommands (`parser` itself if none)."""
+    for action in parser._actions:  # argparse keeps its subparsers only here
+        if isinstance(action, argparse._SubParsersAction) and command in action.choices:
+            return action.choices[command]
     return parser
 
 
@@ -89,7 +99,9 @@ def run(argv: list[str] | None, registrars: Iterable[Registrar], routes: Routes 
             overrides = next((getattr(args, name) for name in OVERRIDE_LISTS
                               if isinstance(getattr(args, name, None), list)), None)
             if overrides is None or not all("=" in e and not e.startswith("-") for e in extra):
-                parser.error(f"unrecognized arguments: {' '.join(extra)}")
+                # The command's own usage (`tabx eval RUN_A RUN_B`), not the list of commands.
+                command_parser(parser, getattr(args, "command", None)).error(
+                    f"unrecognized arguments: {' '.join(extra)}")
             overrides.extend(extra)
     try:
         return int(args.func(args) or 0)
@@ -107,11 +119,41 @@ def run(argv: list[str] | None, registrars: Iterable[Registrar], routes: Routes 
     except Exception as err:  # noqa: BLE001 (the one place that turns any error into a line)
         if debug:
             raise
+        problem = platform_problem()
+        if problem is not None:
+            print(f"tabx {args.command}: error: {problem}", file=sys.stderr)
+            return 2
         text = str(err).strip().splitlines()[0] if str(err).strip() else ""
         print(f"tabx {args.command}: error: {type(err).__name__}{': ' if text else ''}{text} "
               f"(unexpected: run `tabx --debug {args.command} ...` or set TABX_DEBUG=1 for "
               f"the traceback)", file=sys.stderr)
         return 1
+
+
+def platform_problem() -> str | None:
+    """Why the JAX platform `JAX_PLATFORMS` names cannot start here (JAX reports it at the first
+    use of a device, for some platforms as a bare AssertionError), with the platforms this
+    machine has; None when it starts or the variable is unset."""
+    wanted = os.environ.get("JAX_PLATFORMS", "")
+    if not wanted or "jax" not in sys.modules:
+        return None
+    import jax
+
+    try:
+        jax.devices()
+        return None
+    except Exception as err:  # noqa: BLE001 (JAX raises RuntimeError or AssertionError here)
+        why = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+    # What starts without the setting, asked of a fresh interpreter (this one's JAX is set).
+    probe = "import jax; print(','.join(sorted({d.platform for d in jax.devices()})))"
+    env = {k: v for k, v in os.environ.items() if k != "JAX_PLATFORMS"}
+    try:
+        found = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True,
+                               text=True, timeout=120).stdout.strip() or "none"
+    except (OSError, subprocess.SubprocessError):
+        found = "unknown"
+    return (f"JAX_PLATFORMS={wanted}: JAX cannot start that platform here ({why[:200]}); "
+            f"this machine has: {found}; unset JAX_PLATFORMS or set it to one of those")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -122,7 +164,8 @@ def main(argv: list[str] | None = None) -> int:
     return run(argv, [add_commands], ROUTES)
 
 
-__all__ = ["Registrar", "Routes", "UserError", "build_parser", "main", "run", "version_text"]
+__all__ = ["Registrar", "Routes", "UserError", "build_parser", "main", "platform_problem", "run",
+           "version_text"]
 
 if __name__ == "__main__":
     sys.exit(main())

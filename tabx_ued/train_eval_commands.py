@@ -21,6 +21,7 @@ Training goes through `workers.train.train`, which picks the driver.
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from tabx.errors import UserError
@@ -88,8 +89,40 @@ def cmd_train(args: argparse.Namespace) -> int:
                             progress=not args.quiet)
     except (ConfigError, RunStopped) as err:
         raise UserError(str(err)) from None
+    if not args.quiet:
+        print(run_summary_lines(Path(run_dir)), file=sys.stderr)
     print(run_dir)
     return 0
+
+
+def run_summary_lines(run_dir: Path) -> str:
+    """What a run ended with, for the terminal: the last logged win rate, the last zero-shot
+    mean win rate of each suite, and where its checkpoints are. Best effort: a part that
+    cannot be read is left out (the run itself is complete)."""
+    from ued.run_folder import CHECKPOINT_DIR, EVENTS_DIR
+
+    lines = [f"summary of {run_dir}:"]
+    try:
+        from ued.tensorboard import read_scalars
+
+        scalars = read_scalars(run_dir / EVENTS_DIR)
+    except Exception:  # noqa: BLE001 (no events/, a multi-seed run, unreadable files)
+        scalars = {}
+    if scalars.get("episode/win_rate"):
+        step, value = scalars["episode/win_rate"][-1]
+        lines.append(f"  win rate (training, at env step {step}): {value:.3f}")
+    for tag in sorted(t for t in scalars if t.startswith("eval/") and
+                      t.endswith("/mean_win_rate")):
+        step, value = scalars[tag][-1]
+        lines.append(f"  zero-shot mean win rate, {tag.split('/')[1]} (env step {step}): "
+                     f"{value:.3f}")
+    folder = run_dir / CHECKPOINT_DIR
+    steps = sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit()) \
+        if folder.is_dir() else []
+    if steps:
+        lines.append(f"  checkpoints: {folder} (steps {', '.join(map(str, steps))}); "
+                     f"evaluate with tabx eval {run_dir}")
+    return "\n".join(lines)
 
 
 def cmd_eval(args: argparse.Namespace) -> int:

@@ -368,3 +368,16 @@ def test_no_module_touches_a_device_at_import():
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr[-3000:]
     assert lines[0].startswith("tabx buffer: error: /dev/zero: cannot read: a character device")
+
+
+@pytest.mark.skipif(shutil.which("nvidia-smi") is not None, reason="a GPU may be here")
+def test_an_unusable_jax_platform_is_one_line_naming_it():
+    """`JAX_PLATFORMS=cuda tabx rollout crossfire` without a GPU: one line naming the setting
+    and the platforms this machine has (JAX raises a bare AssertionError there)."""
+    env = {**os.environ, "JAX_PLATFORMS": "cuda", "PYTHONPATH": str(ROOT)}
+    proc = subprocess.run([sys.executable, "-m", "tabx_ued.cli", "rollout", "crossfire"],
+                          env=env, capture_output=True, text=True, timeout=240, cwd=ROOT)
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr[-3000:]
+    assert lines[0].startswith("tabx rollout: error: JAX_PLATFORMS=cuda: JAX cannot start"), lines
+    assert "this machine has: cpu" in lines[0] and "unexpected" not in lines[0], lines

@@ -244,6 +244,14 @@ RUN_DAMAGE = {
     "ray.json a list": (lambda r: (r / "ray.json").write_text("[1, 2]"),
                         r"ray\.json: not a Ray record", (STATUS, LIVE)),
     "events missing": (lambda r: remove(r / "events"), r"no events/ folder", (PLOT,)),
+    # A valid config that is not the one the checkpoints were trained with (a value cut short).
+    "config changed": (lambda r: edit_config(r, "gamma: 0.99", "gamma: 0.9"),
+                       r"config\.yaml: differs from the config checkpoint 4 was trained with",
+                       (RESUME,)),
+    "events a file": (lambda r: (remove(r / "events"), (r / "events").write_text("x")),
+                      r"events: not a folder", (RESUME,)),
+    "levels a file": (lambda r: (remove(r / LEVELS_DIR), (r / LEVELS_DIR).write_text("x")),
+                      r"levels: not a folder", (RESUME,)),
     "events damaged": (lambda r: [p.write_bytes(bytes(range(256)) * 4)
                                   for p in (r / "events").iterdir()],
                        r"no scalars in their event folders", (PLOT,)),
@@ -398,10 +406,16 @@ OVERRIDES = {
     "levels.free=[nope]": r"levels\.free: unknown free parameter 'nope'",
     "levels.zone_count=-1": r"levels\.zone_count: expected an integer or a list of them",
     "seed=\x00": r"seed: expected an integer",
+    # Values that pass the type check must still be refused before a run folder exists.
+    "seed=-1": r"seed: must be an integer in \[0, 2\*\*63\)",
+    "seed=1e30": r"seed: must be an integer in \[0, 2\*\*63\)",
+    "seed=18446744073709551616": r"seed: must be an integer in \[0, 2\*\*63\)",
+    "run.name=" + "n" * 10_000: r"run\.name: must be at most 200 bytes",
+    "learner.lr=1e308": r"learner\.lr: must be in \(0, 1\.0\]",
 }
 
 
-@pytest.mark.parametrize("override", list(OVERRIDES))
+@pytest.mark.parametrize("override", list(OVERRIDES), ids=lambda o: o[:40])
 def test_bad_override_is_one_clear_error(override, config_text, tmp_path, capsys):
     path = tmp_path / "ok.yaml"
     path.write_text(config_text)
@@ -689,3 +703,43 @@ def test_strict_yaml_reads_what_yaml_reads():
     assert len(files) > 30
     for path in files:
         assert read_yaml(path.read_bytes(), str(path)) == yaml.safe_load(path.read_text()), path
+
+
+def test_a_wrong_value_in_an_override_is_blamed_on_the_override():
+    """The override that set a refused value is named, not the config file it overrode."""
+    for item, words in (("learner.gamma=[0.5]", "learner.gamma: expected a number"),
+                        ("lr=abc", "learner.lr: expected a number"),
+                        ("seed=-1", "seed: must be an integer")):
+        with pytest.raises(ConfigError) as caught:
+            load_config("configs/marl/mappo_crossfire.yaml", [item])
+        assert str(caught.value).startswith(f"override {item!r}: {words}"), str(caught.value)
+    with pytest.raises(ConfigError, match=r"mappo_crossfire\.yaml: learner\.num_minibatches"):
+        load_config("configs/marl/mappo_crossfire.yaml", ["learner.num_envs=3"])
+
+
+def test_a_config_that_is_not_a_regular_file_is_named_as_such(tmp_path, capsys):
+    """`tabx train /dev/zero` or a folder: one line saying what it is (not "no such file")."""
+    for path, words in (("/dev/zero", "not a regular file"), (str(tmp_path), "a folder")):
+        argv = ["train", path, "--quiet"]
+        code, out, err = run_cli(capsys, argv)
+        assert_one_error(code, out, err, argv, path, rf"cannot read the config \({words}")
+
+
+def test_an_extra_argument_shows_the_commands_own_usage(tmp_path, capsys):
+    """`tabx eval RUN_A RUN_B`: the usage of `tabx eval`, not the list of every command."""
+    code, out, err = run_cli(capsys, ["eval", str(tmp_path / "a"), str(tmp_path / "b")])
+    assert code == 2 and "usage: tabx eval" in err, err
+    last = err.strip().splitlines()[-1]
+    assert last == f"tabx eval: error: unrecognized arguments: {tmp_path / 'b'}", last
+
+
+def test_envs_that_cannot_fit_in_memory_are_refused_before_the_run_folder(tmp_path, capsys):
+    """`learner.num_envs: 100000000`: one line with the memory it needs at least and what the
+    machine has, before a run folder exists (shapes only: nothing allocated or compiled)."""
+    argv = ["train", "marl/mappo_crossfire", "learner.num_envs=100000000",
+            f"run.dir={tmp_path / 'runs'}", "--quiet"]
+    code, out, err = run_cli(capsys, argv)
+    assert_one_error(code, out, err, argv, "learner.num_envs",
+                     r"100000000 envs x 512 steps need at least \d+\.\d GiB .*; this machine's "
+                     r"\w+ memory is \d+\.\d GiB")
+    assert not (tmp_path / "runs").exists()

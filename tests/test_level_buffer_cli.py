@@ -67,6 +67,7 @@ def test_inspect(capsys, buffer_file):
     assert "random 3 (75.0%)" in out and "mutation 1 (25.0%)" in out
     assert "lineage depth: 0: 3, 1: 1" in out
     assert "policy versions: 2 distinct" in out
+    assert "gradient updates when it scored the level, not the run's update count" in out
 
 
 def test_top(capsys, buffer_file):

@@ -216,3 +216,23 @@ def test_overrides_may_follow_options(capsys, tmp_path, tiny_yaml):
     with pytest.raises(SystemExit):  # anything else after the options is still refused
         run_cli(capsys, "train", str(tiny_yaml), "--quiet", "--bogus")
     assert "unrecognized arguments: --bogus" in capsys.readouterr().err
+
+
+def test_a_finished_run_prints_a_summary(tmp_path):
+    """What `tabx train` prints at the end (stderr, before the folder on stdout): the last
+    win rate, each suite's zero-shot mean, where the checkpoints are."""
+    from tabx_ued.train_eval_commands import run_summary_lines
+    from ued.tensorboard import SummaryWriter
+
+    run = tmp_path / "run"
+    writer = SummaryWriter(run / "events")
+    writer.scalars({"episode/win_rate": 0.25, "eval/zones/mean_win_rate": 0.5}, step=64)
+    writer.scalars({"episode/win_rate": 0.75}, step=128)
+    writer.close()
+    for step in (2, 4):
+        (run / "checkpoints" / str(step)).mkdir(parents=True)
+    text = run_summary_lines(run)
+    assert "win rate (training, at env step 128): 0.750" in text
+    assert "zero-shot mean win rate, zones (env step 64): 0.500" in text
+    assert f"checkpoints: {run / 'checkpoints'} (steps 2, 4)" in text
+    assert run_summary_lines(tmp_path / "nothing").startswith("summary of")

@@ -118,3 +118,20 @@ def test_the_plot_pools_runs_of_an_algorithm_as_mean_and_standard_error():
     assert bars["ippo"]["error_bar"] == 0.03  # one run: its interval over states
     per_run = group_records(records, by="run")
     assert [b["label"] for b in per_run] == ["m0 (mappo)", "m1 (mappo)", "i0 (ippo)"]
+
+
+def test_value_error_refuses_learners_without_a_value_head(capsys, tmp_path):
+    """IQL, VDN and QMIX runs: one line before anything is loaded (their greedy Q is in
+    scaled reward units, and VDN's and QMIX's team value is the mixer's, not a V(s))."""
+    from ued.config import load_config
+
+    for algorithm in ("iql", "vdn", "qmix"):
+        run = tmp_path / f"{algorithm}_run"
+        run.mkdir()
+        config = load_config("configs/marl/iql_crossfire.yaml", [f"algorithm={algorithm}"])
+        (run / CONFIG_FILE).write_text(config.to_yaml())
+        code, out, err = run_cli(capsys, "analyse", "value-error", str(run))
+        lines = err.strip().splitlines()
+        assert code == 2 and len(lines) == 1, err
+        assert f"a {algorithm} run has no value head" in lines[0] and "mappo" in lines[0]
+        assert sorted(p.name for p in run.iterdir()) == [CONFIG_FILE]

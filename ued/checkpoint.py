@@ -25,9 +25,11 @@ check asks it). Checkpoints saved without digests restore unchecked.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import hashlib
 import logging
 import os
+import shutil
 import sys
 import zlib
 from collections.abc import Mapping, Sequence
@@ -112,9 +114,49 @@ class Checkpoints:
                  if path.is_file()}
         custom = {**(metadata or {}),
                   INTEGRITY_KEY: {"arrays": array_digests(item), "files": files}}
-        self._manager.save(int(update), args=ocp.args.StandardSave(item),
-                           custom_metadata=custom)
-        self._manager.wait_until_finished()
+        # A failed save's writer threads report themselves (each with a traceback): the caller
+        # gets the failure as one CheckpointError instead.
+        quiet = _MessageFilter("_SignalingThread.run() raised an exception")
+        absl_logger = logging.getLogger("absl")
+        absl_logger.addFilter(quiet)
+        _quiet_abandoned_reads()
+        try:
+            self._manager.save(int(update), args=ocp.args.StandardSave(item),
+                               custom_metadata=custom)
+            self._manager.wait_until_finished()
+        except Exception as err:  # noqa: BLE001 (orbax and TensorStore raise many kinds)
+            raise self._save_error(int(update), item, err) from err
+        finally:
+            absl_logger.removeFilter(quiet)
+
+    def _save_error(self, update: int, item: Any, err: BaseException) -> CheckpointError:
+        """The one line a failed save ends in. Its temporary folder (never a checkpoint) is
+        removed, so a full disk gets its space back; the checkpoints before stay as they
+        were."""
+        for partial in self.directory.glob(f"{update}.orbax-checkpoint-tmp*"):
+            shutil.rmtree(partial, ignore_errors=True)
+        previous = [step for step in self.all() if step != update]
+        kept = (f"checkpoint {previous[-1]} is intact" if previous
+                else "no checkpoint was saved before")
+        chain, cause = [], err
+        while cause is not None and len(chain) < 8:
+            chain.append(cause)
+            cause = cause.__cause__ or cause.__context__
+        full = any(getattr(e, "errno", None) == errno.ENOSPC or "RESOURCE_EXHAUSTED" in str(e)
+                   or "No space left" in str(e) for e in chain)
+        if not full:
+            return CheckpointError(f"{self.directory / str(update)}: cannot be saved "
+                                   f"({gist(err)}); {kept}")
+        need = sum(np.asarray(leaf).nbytes for leaf in jax.tree.leaves(item))
+        try:
+            free = shutil.disk_usage(self.directory).free
+        except OSError:
+            free = 0
+        return CheckpointError(f"{self.directory / str(update)}: cannot be saved: no space left "
+                               f"on the device of {self.directory} ({free / 1e6:.1f} MB free; "
+                               f"the checkpoint needs about {need / 1e6:.1f} MB); {kept}; free "
+                               f"some space and continue with tabx train --resume "
+                               f"{self.directory.parent}")
 
     def metadata(self, update: int) -> dict[str, Any]:
         """The custom metadata of checkpoint `update`; {} for one saved without any."""
@@ -123,7 +165,7 @@ class Checkpoints:
         return meta
 
     def _custom_metadata(self, update: int) -> dict[str, Any]:
-        step = self._manager.metadata(int(update))
+        step = step_metadata(self._manager, update)
         return dict(getattr(step, "custom_metadata", None) or {})
 
     def _covered(self, update: int) -> list[tuple[str, Path]]:
@@ -178,7 +220,7 @@ class Checkpoints:
                     "key": jax.ShapeDtypeStruct(key_shape, np.uint32)}
         _quiet_abandoned_reads()
         try:
-            self._manager.metadata(int(update))  # a step whose metadata orbax rejects
+            step_metadata(self._manager, update)  # a step whose metadata orbax rejects
             item = self._manager.restore(update, args=ocp.args.StandardRestore(abstract))
         except Exception as err:  # noqa: BLE001 (orbax and TensorStore raise many kinds)
             raise CheckpointError(f"{self.directory / str(update)}: cannot be restored "
@@ -202,7 +244,7 @@ class Checkpoints:
         try:
             with open_manager(self.directory, options,
                               item_handlers=ocp.StandardCheckpointHandler()) as manager:
-                manager.metadata(int(update))  # a step whose metadata orbax rejects
+                step_metadata(manager, update)  # a step whose metadata orbax rejects
                 saved = manager.item_metadata(int(update)).tree
                 abstract = jax.tree.map(
                     lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device), saved)
@@ -227,7 +269,7 @@ class Checkpoints:
         restore_args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), abstract)
         _quiet_abandoned_reads()
         try:
-            self._manager.metadata(int(update))  # a step whose metadata orbax rejects
+            step_metadata(self._manager, update)  # a step whose metadata orbax rejects
             # The manager saved one item, named "default", in the step's folder.
             item = ocp.PyTreeCheckpointer().restore(
                 self.directory / str(update) / "default",
@@ -276,6 +318,19 @@ def open_manager(directory: Path, options: ocp.CheckpointManagerOptions,
         return ocp.CheckpointManager(directory, options=light, **kwargs)
 
 
+def step_metadata(manager: ocp.CheckpointManager, update: int) -> Any:
+    """Orbax's metadata of step `update` (raises where orbax rejects it). Read without the
+    item's handler, orbax warns each time that it cannot restore the item: true, and not
+    asked for here, so that warning stays off the terminal."""
+    quiet = _MessageFilter("could not be restored. Please provide a `CheckpointHandler")
+    absl_logger = logging.getLogger("absl")
+    absl_logger.addFilter(quiet)
+    try:
+        return manager.metadata(int(update))
+    finally:
+        absl_logger.removeFilter(quiet)
+
+
 def _is_abandoned_read(exc: BaseException | None) -> bool:
     return isinstance(exc, RuntimeError) and str(exc) == "Event loop is closed"
 
@@ -290,6 +345,17 @@ class _AbandonedTasks(logging.Filter):
             return True
         text = message.lower()
         return not any(word in text for word in ("orbax", "tensorstore", "zarr", "ocdbt"))
+
+
+class _MessageFilter(logging.Filter):
+    """Drops the log records whose message contains `text`."""
+
+    def __init__(self, text: str):
+        super().__init__()
+        self.text = text
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return self.text not in record.getMessage()
 
 
 _QUIETED = False
@@ -321,4 +387,4 @@ def _quiet_abandoned_reads() -> None:
 
 
 __all__ = ["INTEGRITY_KEY", "CheckpointError", "Checkpoints", "array_digests", "file_digest",
-           "leaf_name", "open_manager"]
+           "leaf_name", "open_manager", "step_metadata"]

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import os
 import sys
+import tempfile
 from pathlib import Path
 
 import jax
@@ -43,8 +44,8 @@ def cache_dir() -> Path | None:
 
 def enable(enabled: bool = True) -> Path | None:
     """Turn the persistent cache on for this process (before anything large compiles); returns
-    its folder, or None when it stays off (disabled, or the folder cannot be created: a
-    warning, not an error, since the cache only saves time)."""
+    its folder, or None when it stays off (disabled, or the folder cannot be created or
+    written: a warning, not an error, since the cache only saves time)."""
     if not enabled:
         return None
     configured = jax.config.jax_compilation_cache_dir
@@ -55,8 +56,12 @@ def enable(enabled: bool = True) -> Path | None:
         return None
     try:
         path.mkdir(parents=True, exist_ok=True)
+        # A folder that exists but cannot be written would fail each write, quietly.
+        fd, probe = tempfile.mkstemp(dir=path, prefix=".tabx-write-check-")
+        os.close(fd)
+        os.unlink(probe)
     except OSError as err:
-        print(f"warning: compilation cache off: cannot create {path} ({err.strerror}); "
+        print(f"warning: compilation cache off: cannot write into {path} ({err.strerror}); "
               f"set {ENV_VAR} to a writable folder or to 'off'", file=sys.stderr)
         return None
     jax.config.update("jax_compilation_cache_dir", str(path))

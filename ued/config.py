@@ -50,7 +50,10 @@ PPO_ONLY_FIELDS = ("gae_lambda", "clip_eps", "clip_value", "ent_coef", "vf_coef"
                    "num_minibatches", "normalize_advantages")
 MATMUL_DTYPES = ("bfloat16", "float32")  # learner.matmul_dtype
 TEAMS = ("ally", "enemy")
-MAX_SEED = 2**63  # `seeds`: what jax.random.key takes
+MAX_SEED = 2**63  # `seed` and `seeds`: what jax.random.key takes
+MAX_LR = 1.0  # Adam's step size: the paper's are 4e-3 (PPO) and 5e-5 (Q-learners)
+# A run folder is `<run.name>-<YYYYmmdd-HHMMSS>[-N]`: file systems allow 255 bytes a name.
+MAX_RUN_NAME_BYTES = 200
 
 
 @dataclass(frozen=True)
@@ -155,7 +158,8 @@ class LearnerConfig:
                f"must be one of {', '.join(MATMUL_DTYPES)}, got {self.matmul_dtype!r}")
         for name in ("lr", "rnd_lr"):
             value = getattr(self, name)
-            _check(value > 0, f"{prefix}.{name}", f"must be > 0, got {value}")
+            _check(0 < value <= MAX_LR, f"{prefix}.{name}",
+                   f"must be in (0, {MAX_LR}], got {value}")
         for name in ("gamma", "gae_lambda"):
             value = getattr(self, name)
             _check(0.0 <= value <= 1.0, f"{prefix}.{name}", f"must be in [0, 1], got {value}")
@@ -247,8 +251,12 @@ class RunSection:
                      "value_error_rollouts"):
             value = getattr(self, name)
             _check(value >= 1, f"{prefix}.{name}", f"must be >= 1, got {value}")
-        _check("/" not in self.name and "\\" not in self.name, f"{prefix}.name",
-               f"must be a plain folder name, got {self.name!r}")
+        _check("/" not in self.name and "\\" not in self.name
+               and all(ch.isprintable() for ch in self.name), f"{prefix}.name",
+               f"must be a plain folder name, got {self.name!r:.80}")
+        size = len(self.name.encode("utf-8", "surrogatepass"))
+        _check(size <= MAX_RUN_NAME_BYTES, f"{prefix}.name",
+               f"must be at most {MAX_RUN_NAME_BYTES} bytes (a folder name), got {size}")
 
 
 UED_SCORES = ("max_mc", "pvl")
@@ -434,7 +442,12 @@ class TrainConfig:
         return self
 
     def _validate_seeds(self) -> None:
-        """`seeds`: distinct non-negative integers, for a plain MARL run of the PPO family."""
+        """`seed`: an integer in [0, 2**63); `seeds`: distinct ones, for a plain MARL run of
+        the PPO family."""
+        _check(0 <= self.seed < MAX_SEED, "seed",
+               f"must be an integer in [0, 2**63), got {self.seed:.4g}"
+               if abs(self.seed) >= 10**12 else f"must be an integer in [0, 2**63), got "
+               f"{self.seed}")
         if not self.seeds:
             return
         for seed in self.seeds:
@@ -625,7 +638,25 @@ def load_config(path: str | Path, overrides: Sequence[str] = ()) -> TrainConfig:
     apply `key=value` overrides."""
     path = resolve_config(path)
     data = apply_overrides(read_config_file(path), overrides, source=str(path))
-    return config_from_dict(data, source=str(path))
+    try:
+        return config_from_dict(data, source=str(path))
+    except ConfigError as err:
+        raise _blame_override(err, str(path), overrides) from None
+
+
+def _blame_override(err: ConfigError, source: str, overrides: Sequence[str]) -> ConfigError:
+    """`err` (a value refused in the config as overridden) naming the override that set the
+    value, not the file; unchanged when no override set it."""
+    text = str(err)
+    inner = text[len(source) + 2:] if text.startswith(f"{source}: ") else text
+    paths = _field_paths()
+    for item in reversed(overrides):  # the last override of a key is the one that counts
+        key = item.partition("=")[0].strip()
+        key = paths[key][0] if "." not in key and len(paths.get(key, [])) == 1 else key
+        if inner.startswith(f"{key}: ") or inner.startswith(f"{key}["):
+            shown = repr(item) if len(item) <= 100 else f"{item[:80]!r}..."
+            return ConfigError(f"override {shown}: {inner}")
+    return err
 
 
 def read_config_file(path: str | Path) -> Any:

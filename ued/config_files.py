@@ -67,6 +67,11 @@ def resolve_config(name_or_path: str | Path) -> Path:
         return configs[by_stem[0]]
     if len(by_stem) > 1:
         raise ConfigError(f"config name {text!r} is ambiguous: use one of {', '.join(by_stem)}")
+    # A folder, a device, a FIFO that is no shipped config's name: never opened (a FIFO blocks).
+    if path.exists():
+        kind = "a folder" if path.is_dir() else "not a regular file"
+        raise ConfigError(f"{path}: cannot read the config ({kind}; give a YAML file or a "
+                          "shipped config's name)")
     stems = {name.rsplit("/", 1)[-1]: name for name in configs}
     close = difflib.get_close_matches(key, list(configs), n=3, cutoff=0.6)
     close += [stems[s] for s in difflib.get_close_matches(key.rsplit("/", 1)[-1], list(stems),

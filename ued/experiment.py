@@ -6,10 +6,12 @@ run folder's policy loader) builds these the same way, through this module.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from tabx.params import EnvConfig, EnvParams, stack_levels
 from ued.config import ConfigError, TrainConfig
@@ -79,5 +81,52 @@ def check_devices(config: TrainConfig) -> None:
         raise ConfigError(str(err)) from None
 
 
-__all__ = ["check_devices", "learner_for", "scenario_levels", "seed_keys",
-           "split_seed_keys", "training_levels"]
+def memory_floor(config: TrainConfig, env_config: EnvConfig, level: EnvParams) -> int:
+    """Bytes a run needs at least: every env's level and state, and (PPO learners) the
+    observations of a whole rollout, `num_envs x num_steps` of them. Shapes only
+    (`jax.eval_shape`): nothing is allocated or compiled. Networks, optimiser state,
+    activations and a Q-learner's replay buffer come on top."""
+    from tabx.env import TabxEnv
+    size = lambda tree: sum(int(np.prod(x.shape)) * x.dtype.itemsize
+                            for x in jax.tree.leaves(tree))
+    if env_config not in _ENV_BYTES:  # tracing takes about a second; a config's shapes fixed
+        env = TabxEnv(env_config)
+        state = jax.eval_shape(env.initial_state, level)
+        _ENV_BYTES[env_config] = (size(state), size(jax.eval_shape(env.observe, state, level)))
+    state_bytes, obs_bytes = _ENV_BYTES[env_config]
+    learner = config.learner
+    steps = learner.num_steps if learner_entry(config.algorithm).ppo_settings else 1
+    return learner.num_envs * (size(level) + state_bytes + steps * obs_bytes)
+
+
+_ENV_BYTES: dict[EnvConfig, tuple[int, int]] = {}  # env config -> (state, observation) bytes
+
+
+def device_memory() -> tuple[str, int | None]:
+    """(platform, bytes of memory its local devices have together; None: unknown)."""
+    devices = jax.local_devices()
+    platform = devices[0].platform
+    if platform == "cpu":
+        try:
+            return platform, os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        except (OSError, ValueError):
+            return platform, None
+    limits = [(d.memory_stats() or {}).get("bytes_limit") for d in devices]
+    return platform, (sum(limits) if all(limits) else None)
+
+
+def check_memory(config: TrainConfig, env_config: EnvConfig, level: EnvParams) -> None:
+    """ConfigError, before a run folder exists, for a run whose envs cannot fit this machine's
+    memory even at `memory_floor` (`learner.num_envs: 100000000`)."""
+    need = memory_floor(config, env_config, level)
+    platform, have = device_memory()
+    if have is not None and need > have:
+        learner = config.learner
+        raise ConfigError(f"learner.num_envs: {learner.num_envs} envs x {learner.num_steps} "
+                          f"steps need at least {need / 2**30:.1f} GiB (levels, states and "
+                          f"a rollout's observations); this machine's {platform} memory is "
+                          f"{have / 2**30:.1f} GiB: lower learner.num_envs or num_steps")
+
+
+__all__ = ["check_devices", "check_memory", "device_memory", "learner_for", "memory_floor",
+           "scenario_levels", "seed_keys", "split_seed_keys", "training_levels"]

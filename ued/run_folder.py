@@ -16,7 +16,13 @@
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
+import fcntl
 import hashlib
+import os
+import tempfile
+from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -26,7 +32,14 @@ import jax
 
 from tabx.files import atomic_write_text
 from ued.checkpoint import CheckpointError, Checkpoints
-from ued.config import TEAMS, ConfigError, TrainConfig, config_from_dict, read_config_file
+from ued.config import (
+    TEAMS,
+    ConfigError,
+    RaySection,
+    TrainConfig,
+    config_from_dict,
+    read_config_file,
+)
 from ued.experiment import learner_for, seed_keys
 from ued.learners.ppo import PPOLearner
 
@@ -80,9 +93,63 @@ def create_run_dir(config: TrainConfig, run_dir: str | Path | None = None) -> Pa
     path = Path(run_dir) if run_dir is not None else new_run_dir(config)
     if (path / CONFIG_FILE).exists():
         raise ConfigError(f"{path} already holds a run; continue it with --resume {path}")
-    path.mkdir(parents=True, exist_ok=True)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot make the run folder ({err.strerror})") from None
     atomic_write_text(path / CONFIG_FILE, config.to_yaml())
     return path
+
+
+def written_folders(run_dir: str | Path, config: TrainConfig) -> list[Path]:
+    """The folders a run writes into: the run folder, its event folders, checkpoints/ and,
+    for a UED run, levels/."""
+    run_dir = Path(run_dir)
+    events = ([seed_dir(run_dir, seed) for seed in config.seeds] if config.seeds
+              else [run_dir / EVENTS_DIR])
+    levels = [run_dir / LEVELS_DIR] if config.ued.enabled else []
+    return [run_dir, *events, run_dir / CHECKPOINT_DIR, *levels]
+
+
+def check_writable(run_dir: str | Path, config: TrainConfig) -> None:
+    """ConfigError naming the first folder a run writes into that is not a folder or cannot
+    be written (a read-only file system or permissions), before any work: a file is made in
+    each that exists (else in the run folder) and removed again."""
+    for folder in written_folders(run_dir, config):
+        if folder.exists() and not folder.is_dir():
+            raise ConfigError(f"{folder}: not a folder (the run writes its files in it); "
+                              "move it away")
+        if not folder.exists():
+            continue
+        try:
+            fd, probe = tempfile.mkstemp(dir=folder, prefix=".tabx-write-check-")
+            os.close(fd)
+            os.unlink(probe)
+        except OSError as err:
+            raise ConfigError(f"{folder}: not writable ({err.strerror}); the run writes its "
+                              "files there") from None
+
+
+@contextlib.contextmanager
+def lock_run_dir(run_dir: str | Path) -> Iterator[None]:
+    """Hold the run folder for one writer (a training process) while the block runs;
+    ConfigError at once if another process holds it. The lock is the kernel's `flock` on the
+    folder itself: no file is added, and it ends with the process however that ends (a
+    killed run never leaves a stale lock)."""
+    path = Path(run_dir)
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot open the run folder ({err.strerror})") from None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ConfigError(f"{path}: another process is training this run; wait for it to "
+                              "end (or stop it) before resuming") from None
+        yield
+    finally:
+        os.close(fd)  # releases the lock
 
 
 def read_run_config(run_dir: str | Path) -> TrainConfig:
@@ -113,6 +180,33 @@ def config_hash(config: TrainConfig) -> str:
     return hashlib.sha256(config.to_yaml().encode()).hexdigest()
 
 
+def training_hash(config: TrainConfig) -> str:
+    """`config_hash` without the `ray:` section: what a resumed run must still match
+    (`--resume --ray` may continue a run on another cluster)."""
+    return config_hash(dataclasses.replace(config, ray=RaySection()))
+
+
+def config_change(run_dir: str | Path, config: TrainConfig, checkpoints: Checkpoints
+                  ) -> str | None:
+    """What says that `config.yaml` (read as `config`) is not the config the newest
+    checkpoint was trained with (its recorded `training_sha256` differs), or None; None too
+    for checkpoints that record none, or whose metadata cannot be read (resume reports
+    those)."""
+    for update in reversed(checkpoints.all()):
+        try:
+            recorded = checkpoints.metadata(update).get("training_sha256")
+        except Exception:  # noqa: BLE001 (a damaged checkpoint: resume's checks name it)
+            continue
+        if not isinstance(recorded, str):
+            return None
+        if recorded != training_hash(config):
+            return (f"{Path(run_dir) / CONFIG_FILE}: differs from the config checkpoint "
+                    f"{update} was trained with (its sha256 was recorded then); restore the "
+                    "file, or start a new run with this config")
+        return None
+    return None
+
+
 def checkpoint_metadata(config: TrainConfig, update: int, policy_version: int
                         ) -> dict[str, Any]:
     """What a checkpoint carries as orbax custom metadata: enough to say, from the checkpoint
@@ -122,7 +216,8 @@ def checkpoint_metadata(config: TrainConfig, update: int, policy_version: int
 
     from tabx import __version__
 
-    return {"config_sha256": config_hash(config), "update": int(update),
+    return {"config_sha256": config_hash(config), "training_sha256": training_hash(config),
+            "update": int(update),
             "policy_version": int(policy_version), "algorithm": config.algorithm,
             "ued_method": config.ued.method, "tabx_ued": __version__, "jax": jax.__version__,
             "flax": flax.__version__, "orbax_checkpoint": orbax.checkpoint.__version__}
@@ -217,6 +312,8 @@ def load_policy(run_dir: str | Path, checkpoint: int | None = None) -> TrainedPo
 
 
 __all__ = ["CHECKPOINT_DIR", "CONFIG_FILE", "EVENTS_DIR", "LEVELS_DIR", "SEED_DIR_PREFIX",
-           "SET_ASIDE_DIR", "SNAPSHOT_FILES", "TrainedPolicy", "checkpoint_metadata", "config_hash",
-           "create_run_dir", "folder_seed", "load_policy", "new_run_dir", "open_checkpoints",
-           "read_run_config", "run_summary", "seed_dir", "split_seed_dir"]
+           "SET_ASIDE_DIR", "SNAPSHOT_FILES", "TrainedPolicy", "check_writable",
+           "checkpoint_metadata", "config_change", "config_hash", "create_run_dir",
+           "folder_seed", "load_policy", "lock_run_dir", "new_run_dir", "open_checkpoints",
+           "read_run_config", "run_summary", "seed_dir", "split_seed_dir", "training_hash",
+           "written_folders"]

@@ -16,8 +16,10 @@ learning per scenario:
 
 The paper's protocol is 128 states x 128 rollouts of 512-step trajectories (the defaults).
 V(s) is the team value the learner trains: MAPPO's centralised value, IPPO's mean value over
-the team's living agents (as in UED scores), MAPPO+RND's extrinsic value. Continuations stop
-at the episode's end (at most the episode limit); the reward after the end is zero.
+the team's living agents (as in UED scores), MAPPO+RND's extrinsic value. Learners without a
+value head (the Q-learners: IQL, VDN, QMIX) are refused before anything is loaded.
+Continuations stop at the episode's end (at most the episode limit); the reward after the end
+is zero.
 
     tabx analyse value-error runs/mappo_clover-* runs/ippo_clover-* --json ve.json --plot ve.png
 """
@@ -181,8 +183,17 @@ def analyse_runs(run_dirs: list[str], scenarios: list[str] | None, states: int,
                  ) -> list[dict]:
     """One record per (run, scenario): run, algorithm, update, scenario and `summary()`."""
     from tabx.scenarios import ScenarioError, load_named
-    from ued.run_folder import load_policy
+    from ued.registry import learner_entry, learners_where
+    from ued.run_folder import load_policy, read_run_config, split_seed_dir
 
+    for run_dir in run_dirs:  # before any run is loaded or compiled
+        algorithm = read_run_config(split_seed_dir(run_dir)[0]).algorithm
+        if not learner_entry(algorithm).value_head:
+            raise ConfigError(
+                f"{run_dir}: a {algorithm} run has no value head: the value error compares a "
+                f"learner's V(s) with Monte-Carlo returns, and a Q-learner's greedy Q is in "
+                f"other units (scaled rewards; VDN and QMIX mix it into the team's value); "
+                f"analyse runs of {', '.join(learners_where(lambda e: e.value_head))}")
     records = []
     for run_dir in run_dirs:
         policy = load_policy(run_dir, checkpoint)

@@ -24,7 +24,7 @@ import jax
 from level_buffer import LevelBuffer
 from level_buffer.fileformat import BufferFileError
 from ued.checkpoint import CheckpointError, Checkpoints
-from ued.config import ConfigError
+from ued.config import ConfigError, TrainConfig
 from ued.errors import gist
 from ued.run_folder import CHECKPOINT_DIR, LEVELS_DIR, SET_ASIDE_DIR
 from workers.level_service import SNAPSHOT_FILES
@@ -181,30 +181,44 @@ def set_aside(run_dir: Path, step: int, stream: TextIO | None) -> Path | None:
 
 
 def check_run(run_dir: Path, checkpoints: Checkpoints, template: Any = None, *,
-              snapshots: bool, needs_buffer: bool, key_template: jax.Array | None = None
-              ) -> list[StepCheck]:
-    """Every checkpointed step of a run folder, oldest first, checked as resume would;
-    `template` None reads each checkpoint as it was saved (`Checkpoints.restore_saved`)."""
+              snapshots: bool, needs_buffer: bool, key_template: jax.Array | None = None,
+              steps: list[int] | None = None) -> list[StepCheck]:
+    """Every checkpointed step of a run folder (or those of `steps`), oldest first, checked as
+    resume would; `template` None reads each checkpoint as it was saved
+    (`Checkpoints.restore_saved`)."""
     levels_dir = run_dir / LEVELS_DIR
     return [StepCheck(step, checkpoint_problem(checkpoints, template, step, key_template)[0],
                       snapshot_problem(levels_dir, step, needs_buffer, checkpoints)
                       if snapshots else None)
-            for step in checkpoints.all()]
+            for step in (checkpoints.all() if steps is None else steps)]
+
+
+def _keeps_buffer(config: TrainConfig) -> bool:
+    """Whether the run's level snapshots hold a level buffer (its curriculum's registry entry)."""
+    from ued.registry import curriculum_entry
+
+    return config.ued.enabled and curriculum_entry(config.ued.method).uses_buffer
 
 
 def check_run_folder(run_dir: str | Path) -> list[StepCheck]:
     """`check_run` for a run folder as it is on disk: its config says what it keeps (the
     curriculum's registry entry whether it has a level buffer); no learner, train state or
     curriculum is built, and each checkpoint is read as it was saved."""
-    from ued.registry import curriculum_entry
     from ued.run_folder import open_checkpoints, read_run_config
 
     run_dir = Path(run_dir)
     config = read_run_config(run_dir)
-    ued = config.ued
-    uses_buffer = ued.enabled and curriculum_entry(ued.method).uses_buffer
     with open_checkpoints(run_dir, config, create=False) as checkpoints:
-        return check_run(run_dir, checkpoints, snapshots=ued.enabled, needs_buffer=uses_buffer)
+        return check_run(run_dir, checkpoints, snapshots=config.ued.enabled,
+                         needs_buffer=_keeps_buffer(config))
+
+
+def step_intact(run_dir: Path, checkpoints: Checkpoints, config: TrainConfig, step: int
+                ) -> bool:
+    """Whether step `step` of a run folder is intact as `tabx runs check` sees it (its
+    checkpoint read as saved, and a UED run's level snapshot)."""
+    return check_run(run_dir, checkpoints, snapshots=config.ued.enabled,
+                     needs_buffer=_keeps_buffer(config), steps=[step])[0].intact
 
 
 def format_checks(run_dir: str | Path, checks: list[StepCheck]) -> str:
@@ -227,4 +241,4 @@ def format_checks(run_dir: str | Path, checks: list[StepCheck]) -> str:
 
 
 __all__ = ["SET_ASIDE_DIR", "StepCheck", "check_run", "check_run_folder", "format_checks",
-           "restore_intact", "set_aside", "state_problem"]
+           "restore_intact", "set_aside", "state_problem", "step_intact"]

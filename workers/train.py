@@ -22,19 +22,30 @@ from typing import TextIO
 
 from ued import compile_cache
 from ued.config import ConfigError, RaySection, TrainConfig
-from ued.experiment import check_devices, scenario_levels
-from ued.run_folder import create_run_dir, open_checkpoints, read_run_config
+from ued.experiment import check_devices, check_memory, scenario_levels
+from ued.run_folder import (
+    check_writable,
+    config_change,
+    create_run_dir,
+    lock_run_dir,
+    open_checkpoints,
+    read_run_config,
+)
 from workers.continuous import ContinuousRun
 from workers.driver import Callback, Driver
 from workers.local import LocalDriver
 from workers.ray_driver import RayDriver, keep_driver_off_accelerators
+from workers.resume import step_intact
 
 
 def finished_at(run_dir: Path, config: TrainConfig) -> int | None:
-    """The last update of a run whose newest checkpoint is its last, else None."""
+    """The last update of a run whose newest checkpoint is its last and intact, else None (a
+    damaged last step is resumed from the newest intact one, as any other)."""
     with open_checkpoints(run_dir, config) as checkpoints:
         latest = checkpoints.latest()
-    return latest if latest is not None and latest >= config.learner.num_updates else None
+        if latest is None or latest < config.learner.num_updates:
+            return None
+        return latest if step_intact(run_dir, checkpoints, config, latest) else None
 
 
 def driver_for(config: TrainConfig) -> Driver:
@@ -62,22 +73,47 @@ def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = Non
         raise ConfigError("a new run needs a config")
     if config.ray.enabled:  # before anything below can start JAX's backends
         keep_driver_off_accelerators()
-    if resume and finished_at(Path(run_dir), config) is not None:
-        done = finished_at(Path(run_dir), config)
-        out = sys.stderr if stream is None else stream
-        out.write(f"{run_dir}: already complete ({done} of {config.learner.num_updates} "
-                  f"updates); nothing to resume\n")
-        return Path(run_dir)
     driver = driver if driver is not None else driver_for(config)
-    driver.check(config)  # first: the Ray driver keeps JAX off accelerators before it starts
+    if resume:
+        assert run_dir is not None
+        with lock_run_dir(run_dir):  # one writer: a second --resume of it is refused
+            check_writable(run_dir, config)
+            with open_checkpoints(run_dir, config) as checkpoints:
+                changed = config_change(run_dir, config, checkpoints)
+            if changed is not None:
+                raise ConfigError(changed)
+            done = finished_at(Path(run_dir), config)
+            if done is not None:
+                out = sys.stderr if stream is None else stream
+                out.write(f"{run_dir}: already complete ({done} of "
+                          f"{config.learner.num_updates} updates); nothing to resume\n")
+                return Path(run_dir)
+            return _start(driver, config, Path(run_dir), resume, max_updates, progress,
+                          stream, callback)
+    _check_start(driver, config)
+    run_dir = create_run_dir(config, run_dir)
+    with lock_run_dir(run_dir):
+        return _start(driver, config, run_dir, resume, max_updates, progress, stream, callback)
+
+
+def _check_start(driver: Driver, config: TrainConfig) -> None:
+    """What is checked before a new run's folder exists: the driver (first: the Ray driver
+    keeps JAX off accelerators before it starts), devices, scenarios, memory."""
+    driver.check(config)
     if not config.ray.enabled:  # a Ray run's learner checks its devices on its own node
-        check_devices(config)  # before a new run's folder exists, as are the scenarios read
-    scenario_levels(config)
-    if not resume:
-        run_dir = create_run_dir(config, run_dir)
-    assert run_dir is not None
+        check_devices(config)
+    env_config, levels = scenario_levels(config)
+    if not config.ray.enabled:  # a Ray run's learner and Explorers may live on other machines
+        check_memory(config, env_config, levels[0])
+
+
+def _start(driver: Driver, config: TrainConfig, run_dir: Path, resume: bool,
+           max_updates: int | None, progress: bool, stream: TextIO | None,
+           callback: Callback | None) -> Path:
+    if resume:
+        _check_start(driver, config)
     compile_cache.enable(config.run.compile_cache)
-    return driver.run(config, Path(run_dir), resume=resume, max_updates=max_updates,
+    return driver.run(config, run_dir, resume=resume, max_updates=max_updates,
                       progress=progress, stream=stream, callback=callback)
 
 

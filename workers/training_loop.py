@@ -8,9 +8,11 @@
     for each step:  key, k = split(key); step(k)
                     log when due (the first step, every run.log_every, the last), timed by a
                         ThroughputClock read after the step's metrics reached the host
+                    stop if a logged loss is not finite (TrainingDiverged)
                     evaluate when due (every runner.eval_every, the last)
                     checkpoint when due (every run.checkpoint_every, the last), or after a
-                        Ctrl-C (then KeyboardInterrupt: `Interrupt`)
+                        Ctrl-C (then KeyboardInterrupt: `Interrupt`), unless the parameters
+                        are not finite (TrainingDiverged: never saved)
     finally: close the writers and the checkpoints
 
 A `Runner` says what differs: what the train state is and where it lives, what one step does,
@@ -30,13 +32,54 @@ from pathlib import Path
 from typing import Any, TextIO
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 
+from tabx.errors import UserError
 from ued.config import TrainConfig
 from ued.progress import Progress, ThroughputClock, log_update
 from ued.run_folder import EVENTS_DIR, checkpoint_metadata, open_checkpoints
 from ued.tensorboard import SummaryWriter
 from workers.driver import Callback
 from workers.resume import restore_intact
+
+
+class TrainingDiverged(UserError):
+    """A loss or a parameter stopped being finite: the run stops before saving it."""
+
+
+def nonfinite_losses(metrics: dict[str, Any]) -> list[str]:
+    """The logged losses (`loss` in the name) of a step that are not finite (any seed)."""
+    bad = []
+    for name, value in metrics.items():
+        if "loss" not in name:
+            continue
+        try:
+            values = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            continue
+        if not np.isfinite(values).all():
+            bad.append(f"{name}={values.ravel()[~np.isfinite(values.ravel())][0]}")
+    return bad
+
+
+def params_finite(train_state: Any) -> bool:
+    """Whether every floating array of the parameters (the train state's `params`, else all
+    of it) is finite: one reduction per array on its device, one bool to the host."""
+    tree = getattr(train_state, "params", train_state)
+    checks = [jnp.isfinite(leaf).all() for leaf in jax.tree.leaves(tree)
+              if hasattr(leaf, "dtype") and jnp.issubdtype(leaf.dtype, jnp.floating)]
+    return bool(jnp.stack(checks).all()) if checks else True
+
+
+def diverged(run_dir: Path, done: int, what: str, last_good: int | None) -> TrainingDiverged:
+    """The one line a diverged run stops with: the update, what is not finite, and the
+    checkpoint to go back to."""
+    back = (f"the last checkpoint, step {last_good} ({run_dir}/checkpoints/{last_good}), holds "
+            "finite values" if last_good is not None else "no checkpoint was saved")
+    return TrainingDiverged(f"{run_dir}: training diverged at update {done}: {what}; nothing "
+                            f"after it is saved, and {back}; lower learner.lr or check the "
+                            "config")
 
 
 @dataclass
@@ -230,6 +273,10 @@ def train_loop(runner: Runner, run_dir: Path, *, resume: bool, max_updates: int 
             trained += runner.step(index, k_step, last=last, checkpoint_due=checkpoint_due)
             if clock.first_pending or done % config.run.log_every == 0 or last:
                 metrics = runner.host_metrics()  # waits for the step: then read the clock
+                bad = nonfinite_losses(metrics)
+                if bad:
+                    raise diverged(run_dir, done, f"{', '.join(bad)} is not finite",
+                                   checkpoints.latest())
                 timing, rate = clock.read(done, trained if runner.explores else None)
                 runner.log(metrics, Report(done, last, timing, rate, clock.eta_steps_per_s,
                                            total, runner.env_steps, output))
@@ -237,6 +284,9 @@ def train_loop(runner: Runner, run_dir: Path, *, resume: bool, max_updates: int 
             runner.evaluate(done, bool(every) and (done % every == 0 or last), output)
             if checkpoint_due or interrupt.requested:
                 train_state, version = runner.checkpoint(done, run_dir)
+                if not params_finite(train_state):
+                    raise diverged(run_dir, done, "the parameters are not finite",
+                                   checkpoints.latest())
                 checkpoints.save(done, train_state, key,
                                  checkpoint_metadata(config, done, version))
             if interrupt.requested:
@@ -253,4 +303,5 @@ def train_loop(runner: Runner, run_dir: Path, *, resume: bool, max_updates: int 
     return run_dir
 
 
-__all__ = ["Output", "Report", "Runner", "train_loop"]
+__all__ = ["Output", "Report", "Runner", "TrainingDiverged", "nonfinite_losses",
+           "params_finite", "train_loop"]

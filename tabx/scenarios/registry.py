@@ -13,6 +13,7 @@ from __future__ import annotations
 import difflib
 import functools
 import os
+import sys
 from dataclasses import replace
 from importlib import resources
 from pathlib import Path
@@ -39,9 +40,20 @@ USER_DIR_ENV = "TABX_SCENARIO_DIR"
 
 
 def user_scenario_dir() -> Path:
-    """Where user scenarios live: $TABX_SCENARIO_DIR or ~/.local/share/tabx/scenarios."""
+    """Where user scenarios live: $TABX_SCENARIO_DIR or ~/.local/share/tabx/scenarios. A
+    $TABX_SCENARIO_DIR that exists but is not a folder is named in one warning line (once):
+    no user scenario is read from it."""
     env = os.environ.get(USER_DIR_ENV)
-    return Path(env).expanduser() if env else Path.home() / ".local/share/tabx/scenarios"
+    path = Path(env).expanduser() if env else Path.home() / ".local/share/tabx/scenarios"
+    if env and path.exists() and not path.is_dir():
+        _warn_once(f"warning: {USER_DIR_ENV}={env}: not a folder; no user scenario is read "
+                   "from it (point it at a folder)")
+    return path
+
+
+@functools.cache
+def _warn_once(message: str) -> None:
+    print(message, file=sys.stderr)
 
 
 @functools.lru_cache(maxsize=1)
