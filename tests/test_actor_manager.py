@@ -217,7 +217,7 @@ def test_a_learner_killed_by_the_memory_monitor_stops_the_run_with_the_resume_co
 
     ray = FakeRay()
     workers = Workers(Handle(Service(), "5e" * 14), Handle(Learner(), "1e" * 14), [], None, 0.0)
-    monkeypatch.setattr(ray_driver, "connect", lambda section: (ray, False))
+    monkeypatch.setattr(ray_driver, "connect", lambda section, num_cpus=None: (ray, False))
     monkeypatch.setattr(ray_driver, "start_workers", lambda *args: workers)
     config = ued_config("robust_plr", **{"ray.enabled": "true", "ray.explorers": 0})
     run_dir = create_run_dir(config, tmp_path / "run")

@@ -411,7 +411,7 @@ OVERRIDES = {
     "seed=1e30": r"seed: must be an integer in \[0, 2\*\*63\)",
     "seed=18446744073709551616": r"seed: must be an integer in \[0, 2\*\*63\)",
     "run.name=" + "n" * 10_000: r"run\.name: must be at most 200 bytes",
-    "learner.lr=1e308": r"learner\.lr: must be in \(0, 1\.0\]",
+    "learner.lr=1e308": r"learner\.lr: must be in \(0, 1\]",
 }
 
 

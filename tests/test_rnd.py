@@ -33,7 +33,7 @@ def test_rnd_defaults_are_the_papers():
      "RND settings go with algorithm mappo_rnd, not mappo"),
     ({"algorithm": "ippo", "learner": {"rnd_layers": 2}}, "learner.rnd_layers",
      "not ippo"),
-    ({**RND, "learner": {"rnd_lr": 0}}, "learner.rnd_lr", "must be > 0"),
+    ({**RND, "learner": {"rnd_lr": 0}}, "learner.rnd_lr", r"must be in \(0, 1\]"),
     ({**RND, "learner": {"rnd_output_dim": 0}}, "learner.rnd_output_dim", "must be >= 1"),
     ({**RND, "learner": {"rnd_gae_coef": -1}}, "learner.rnd_gae_coef", "must be >= 0"),
     ({"algorithm": "mappo_rdn"}, "algorithm", "mappo_rnd"),

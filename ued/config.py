@@ -159,7 +159,7 @@ class LearnerConfig:
         for name in ("lr", "rnd_lr"):
             value = getattr(self, name)
             _check(0 < value <= MAX_LR, f"{prefix}.{name}",
-                   f"must be in (0, {MAX_LR}], got {value}")
+                   f"must be in (0, {MAX_LR:g}], got {value}")
         for name in ("gamma", "gae_lambda"):
             value = getattr(self, name)
             _check(0.0 <= value <= 1.0, f"{prefix}.{name}", f"must be in [0, 1], got {value}")
