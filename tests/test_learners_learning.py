@@ -3,8 +3,10 @@ small battle.
 
 Two archers face +x; a farmer (driven by the random controller) stands above them, outside
 their field of view, so an untrained policy rarely turns and shoots and mostly loses on
-health at the time limit (ties go to the enemy). After 40 updates of 64 envs x 64 steps the
-trained policy wins nearly every episode. Runs in about 30-45 s on 2 CPU cores.
+health at the time limit (ties go to the enemy). With a learning-rate schedule of 40 updates of
+64 envs x 64 steps, the policy wins nearly every episode after 35 (the mean of the last 5 is
+0.97 here, as after all 40: the last 5 add no margin to the check). Runs in about 30-45 s on
+2 CPU cores.
 """
 
 from __future__ import annotations
@@ -22,10 +24,10 @@ from ued.learners import make_learner
 @pytest.mark.parametrize("algorithm", ["mappo", pytest.param("ippo", marks=pytest.mark.slow)])
 def test_learns_two_archers_against_a_farmer(algorithm, optimizing_compiler):
     config, level = learning_duel()
-    num_envs, num_steps, updates = 64, 64, 40
+    num_envs, num_steps, updates, schedule = 64, 64, 35, 40
     levels = jax.tree.map(jnp.asarray, repeat_level(level, num_envs))
     ppo = LearnerConfig(num_envs=num_envs, num_steps=num_steps, hidden_dim=64,
-                    total_timesteps=num_envs * num_steps * updates)
+                    total_timesteps=num_envs * num_steps * schedule)
     learner = make_learner(algorithm, config, ppo, team="ally", opponent="random")
     state = learner.init(jax.random.key(0))
     key = jax.random.key(1)

@@ -240,15 +240,19 @@ def test_tabx_train_joins_a_cluster_started_with_the_ray_command(tmp_path, cli_c
     assert set(record["placement"]) == {"service", "learner", "explorer-0"}
 
 
-def test_joining_an_address_where_no_cluster_runs_is_a_clear_error(tmp_path):
+def test_joining_an_address_where_no_cluster_runs_is_a_clear_error(tmp_path, capsys):
+    # In the test process (`main` is what `python -m tabx_ued` runs): the address is refused
+    # before Ray starts, so a process of its own would only add its imports.
+    from tabx_ued.cli import main
+
     config_file = tmp_path / "tiny.yaml"
     config_file.write_text(ued_config("robust_plr").to_yaml())
-    done = subprocess.run(
-        [sys.executable, "-m", "tabx_ued", "train", str(config_file), "--ray", "--address",
-         f"127.0.0.1:{free_port()}", "--run-dir", str(tmp_path / "never")],
-        capture_output=True, text=True, timeout=120)
-    assert done.returncode == 2, done.stderr[-3000:]
-    assert "ray.address: no Ray head answers at 127.0.0.1:" in done.stderr
+    code = main(["train", str(config_file), "--ray", "--address", f"127.0.0.1:{free_port()}",
+                 "--run-dir", str(tmp_path / "never")])
+    err = capsys.readouterr().err
+    assert code == 2, err[-3000:]
+    assert "ray.address: no Ray head answers at 127.0.0.1:" in err
+    assert not ray.is_initialized()  # refused before Ray started
     assert not (tmp_path / "never").exists()  # no run folder for a run that never started
 
 

@@ -71,19 +71,21 @@ def test_unknown_tier_is_refused(grid):
 
 
 def test_eval_heuristics_cli_prints_the_table_and_writes_json(capsys, tmp_path):
+    """2 x 2 tiers of 8 episodes: the batch of 16 envs that the random-tier test above compiled
+    (the same scenario, so the same EnvConfig and batch runner), so the command only runs it."""
     import json
 
     from tabx_ued.cli import main
 
     out_json = tmp_path / "t.json"
-    code = main(["eval", "heuristics", "grid", "--episodes", "256", "--tiers", "random,expert",
+    code = main(["eval", "heuristics", "grid", "--episodes", "8", "--tiers", "random,expert",
                  "--json", str(out_json), "--profile", "reference"])
     out = capsys.readouterr().out
     assert code == 0
     assert "ally \\ enemy" in out and out.count("[") == 1 + 4  # the header, 2 x 2 cells
     assert "profile reference" in out
     data = json.loads(out_json.read_text())
-    assert data["ally_tiers"] == ["random", "expert"] and data["episodes"] == 256
+    assert data["ally_tiers"] == ["random", "expert"] and data["episodes"] == 8
     assert data["profile"] == "reference"
     assert data["win_rate"][1][0] > 0.9  # expert allies v random enemies
     for name in ("timeout", "length", "hp_ratio", "first_death", "first_dead", "eliminated",

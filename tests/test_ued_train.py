@@ -135,7 +135,8 @@ def test_gradient_on_new_levels_only_where_the_method_says(method, grad_on_new):
 def test_every_method_runs_end_to_end_and_never_recompiles(tmp_path):
     def run_all(seed: int) -> None:
         for method in ("dr", "plr", "robust_plr", "accel", "sfl"):
-            config = ued_config(method, seed=seed)
+            # Checkpoints at steps 3 and 6, not at each: 60 orbax saves were most of the time.
+            config = ued_config(method, seed=seed, **{"run.checkpoint_every": 3})
             run_dir = train(config, run_dir=tmp_path / f"{method}-{seed}", stream=io.StringIO(),
                             max_updates=6)
             steps = snapshot_steps(run_dir / LEVELS_DIR)
@@ -153,7 +154,7 @@ def test_every_method_runs_end_to_end_and_never_recompiles(tmp_path):
 
 
 def test_accel_run_fills_the_buffer_with_mutations(tmp_path):
-    config = ued_config("accel")
+    config = ued_config("accel", **{"run.checkpoint_every": 5})  # the buffer at 10 is read
     seen = []
     run_dir = train(config, run_dir=tmp_path / "run", stream=io.StringIO(),
                     callback=lambda step, state, metrics: seen.append(metrics["ued/branch"]))
