@@ -1,6 +1,6 @@
 """`tabx bench ued`: a UED run's throughput on the local driver and on Ray, by Explorer count.
 
-Protocol (docs/benchmarks.md, "Distributed UED"): one UED config (default
+Protocol (docs/benchmarks_distributed.md, "Distributed UED"): one UED config (default
 configs/ued/quickstart.yaml, evaluation off) runs `--warmup` curriculum steps (actor start-up
 and compilation), then `--steps` timed steps, on
 
