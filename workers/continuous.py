@@ -133,21 +133,9 @@ class ContinuousRun(AsyncRun):
                 results = [None] * len(ready)
             group = []
             for ref, result in zip(ready, results, strict=True):
-                batch = self.pending.pop(ref)
-                self.inflight[batch.explorer] -= 1
-                try:
-                    _, scores, best = self.ray.get(ref) if result is None else result
-                except Exception as err:
-                    self.reissue(batch, err)
-                    continue
-                batch.score.failures = 0
-                lag = self.learner.version - batch.version
-                if lag > self.config.ray.max_policy_lag:
-                    self.stats.rescored += 1
-                    batch.rescored += 1
-                    self._submit(batch)
-                    continue
-                group.append((batch, scores, best, lag))
+                accepted = self.accept(ref, result)
+                if accepted is not None:
+                    group.append(accepted)
             if group:
                 self.commit_group(group)
         if self.scores_apart:

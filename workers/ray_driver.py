@@ -844,22 +844,30 @@ class AsyncRun:
         if block:
             self.stats.wait_for_levels_s += time.perf_counter() - t0
         for ref in ready:
-            batch = self.pending.pop(ref)
-            self.inflight[batch.explorer] -= 1
-            try:
-                _, scores, best = self.ray.get(ref)
-            except Exception as err:
-                self.reissue(batch, err)
-                continue
-            batch.score.failures = 0
-            lag = self.learner.version - batch.version
-            if lag > self.config.ray.max_policy_lag:
-                # Too old to trust: score the same levels again with the current policy.
-                self.stats.rescored += 1
-                batch.rescored += 1
-                self._submit(batch)
-                continue
-            self.commit(batch, scores, best, lag)
+            accepted = self.accept(ref)
+            if accepted is not None:
+                self.commit(*accepted)
+
+    def accept(self, ref: Any, result: Any = None) -> tuple[Batch, Any, Any, int] | None:
+        """Take the finished Explorer call `ref` (its `result` when already fetched) off the
+        pending ones: (batch, scores, best, policy lag) to commit, or None when the call
+        failed (re-issued) or its policy is too old (scored again)."""
+        batch = self.pending.pop(ref)
+        self.inflight[batch.explorer] -= 1
+        try:
+            _, scores, best = self.ray.get(ref) if result is None else result
+        except Exception as err:
+            self.reissue(batch, err)
+            return None
+        batch.score.failures = 0
+        lag = self.learner.version - batch.version
+        if lag > self.config.ray.max_policy_lag:
+            # Too old to trust: score the same levels again with the current policy.
+            self.stats.rescored += 1
+            batch.rescored += 1
+            self._submit(batch)
+            return None
+        return batch, scores, best, lag
 
     def reissue(self, batch: Batch, err: Exception) -> None:
         """`batch` was lost (its Explorer died, or the service before it made the levels): once
