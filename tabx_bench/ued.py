@@ -151,13 +151,10 @@ class RayStepper:
 
     def __init__(self, ray: Any, config: TrainConfig, stream: TextIO):
         from workers.actor_manager import ActorDeaths
-        from workers.ray_driver import (
-            AsyncRun,
-            ExplorerPool,
-            RemoteLearner,
-            start_workers,
-        )
+        from workers.ray_async import AsyncRun
+        from workers.ray_handles import ExplorerPool, RemoteLearner
         from workers.ray_restarts import RemoteService
+        from workers.ray_start import start_workers
 
         self.ray, self.config = ray, config
         self.workers = start_workers(ray, config, stream)
@@ -262,7 +259,7 @@ def bench_async(ray: Any, config: TrainConfig, warmup: int, steps: int,
                 stream: TextIO) -> UEDBenchResult:
     """The asynchronous schedule on fresh actors, timed from the first timed step until every
     batch it issued is committed."""
-    from workers.ray_driver import RayStats
+    from workers.ray_stats import RayStats
 
     stepper = RayStepper(ray, config, stream)
     try:
@@ -286,7 +283,7 @@ def run_ued_bench(config: TrainConfig, explorers: list[int], warmup: int, steps:
     `restarts` list, an Explorer's restart is timed too (compilation cache off, then on) and
     appended to it. `learners`: the asynchronous settings run with each learner-group size
     (`ray.learners`)."""
-    from workers.ray_driver import connect
+    from workers.ray_start import connect
 
     stream = sys.stderr if stream is None else stream
     results: list[UEDBenchResult] = []
@@ -375,7 +372,7 @@ def bench_restart(ray: Any, config: TrainConfig, compile_cache: bool,
     import tempfile
 
     from workers.actors import ExplorerActor, LevelServiceActor, ParamsRef
-    from workers.ray_driver import actor_env
+    from workers.ray_start import actor_env
 
     with tempfile.TemporaryDirectory(prefix="tabx-restart-cache-") as cache:
         env = actor_env(False)

@@ -134,8 +134,9 @@ def simulate(ray: Any, config: TrainConfig, explorers: int, batch_s: float, lear
     from workers.actor_manager import ActorDeaths
     from workers.actors import LevelServiceActor
     from workers.continuous import ContinuousRun
-    from workers.ray_driver import ExplorerPool, RemoteLearner, Workers, actor_env
+    from workers.ray_handles import ExplorerPool, RemoteLearner
     from workers.ray_restarts import RemoteService
+    from workers.ray_start import Workers, actor_env
     from workers.ued_step import UEDRun
 
     # The buffer's fill is not what is measured: replay from the first committed batch.
@@ -221,7 +222,7 @@ def run_simulation(config: TrainConfig, explorers: list[int], batch_s: float, le
     """Every Explorer count in turn, on a Ray of this machine (or `ray.address`'s)."""
     import sys
 
-    from workers.ray_driver import connect
+    from workers.ray_start import connect
 
     stream = sys.stderr if stream is None else stream
     ray, connected_here = connect(config.ray)

@@ -134,8 +134,10 @@ def test_every_error_ray_raises_for_a_lost_actor_or_node_is_a_loss_and_no_other(
 
 def test_an_explorer_killed_by_the_memory_monitor_restarts_and_its_batch_is_reissued():
     from workers.actors import ExplorerActor, LearnerActor, LevelServiceActor
-    from workers.ray_driver import AsyncRun, ExplorerPool, RemoteLearner, Workers
+    from workers.ray_async import AsyncRun
+    from workers.ray_handles import ExplorerPool, RemoteLearner
     from workers.ray_restarts import RemoteService
+    from workers.ray_start import Workers
     from workers.ued_step import UEDRun
 
     config = ued_config("robust_plr", **{
@@ -206,7 +208,8 @@ def test_a_learner_killed_by_the_memory_monitor_stops_the_run_with_the_resume_co
     import workers.ray_driver as ray_driver
     from tabx_ued.cli import main
     from ued.run_folder import create_run_dir
-    from workers.ray_driver import RAY_RECORD, Workers
+    from workers.ray_driver import RAY_RECORD
+    from workers.ray_start import Workers
 
     class Learner:
         def init(self, key):
@@ -272,8 +275,9 @@ def test_continuous_scoring_commits_every_batch_once_when_an_explorer_and_the_se
     from level_buffer import Source
     from workers.actors import ExplorerActor, LearnerActor
     from workers.continuous import ContinuousRun
-    from workers.ray_driver import ExplorerPool, RemoteLearner, Workers
+    from workers.ray_handles import ExplorerPool, RemoteLearner
     from workers.ray_restarts import RemoteService
+    from workers.ray_start import Workers
     from workers.ued_step import UEDRun
 
     config = ued_config("accel", **{

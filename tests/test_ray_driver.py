@@ -29,7 +29,8 @@ from ued.checkpoint import Checkpoints  # noqa: E402
 from ued.config import ConfigError  # noqa: E402
 from ued.run_folder import CHECKPOINT_DIR, LEVELS_DIR  # noqa: E402
 from workers.durable_service import LOG_NAME  # noqa: E402
-from workers.ray_driver import RAY_NAMESPACE, RAY_RECORD  # noqa: E402
+from workers.ray_driver import RAY_RECORD  # noqa: E402
+from workers.ray_start import RAY_NAMESPACE  # noqa: E402
 from workers.train import train  # noqa: E402
 from workers.ued_step import UEDRun  # noqa: E402
 
@@ -182,7 +183,7 @@ def test_a_learner_gpu_on_a_cpu_only_ray_fails_after_the_placement_timeout(tmp_p
 
 def test_live_explorers_are_the_ones_answering():
     from workers.actor_manager import ActorManager
-    from workers.ray_driver import live_actors
+    from workers.ray_stats import live_actors
 
     @ray.remote(num_cpus=0)
     class Stub:
@@ -296,7 +297,7 @@ def test_an_explorer_killed_mid_batch_restarts_and_its_batches_are_reissued(tmp_
     # the restarted Explorer, and committed exactly once.
     import signal
 
-    from workers.ray_driver import AsyncRun
+    from workers.ray_async import AsyncRun
 
     killed: list[int] = []
     submitted = {"n": 0}
@@ -396,7 +397,7 @@ def test_an_evaluator_killed_mid_evaluation_runs_it_again_on_its_restart(tmp_pat
     import signal
 
     from ued.tensorboard import read_scalars
-    from workers.ray_driver import AsyncRun
+    from workers.ray_async import AsyncRun
 
     suite = duel_suite(tmp_path)
     killed = []
@@ -547,7 +548,7 @@ def test_continuous_scoring_commits_every_batch_once_when_explorers_and_the_serv
     # issued batch is committed exactly once, and the buffer saw each batch's levels once.
     import signal
 
-    from workers.ray_driver import AsyncRun
+    from workers.ray_async import AsyncRun
 
     killed: list[int] = []
     submitted = {"n": 0}

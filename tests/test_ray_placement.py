@@ -17,14 +17,14 @@ from test_ued_train import ued_config
 
 from ued.config import ConfigError, RaySection
 from workers import ray_driver
-from workers.ray_driver import (
-    RateWindow,
+from workers.ray_start import (
     explorer_selector,
     join_address,
     local_plan,
     requests,
     wait_for_resources,
 )
+from workers.ray_stats import RateWindow
 from workers.train import train
 
 

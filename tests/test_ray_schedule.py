@@ -20,8 +20,10 @@ from level_buffer import Source
 from ued.curricula import Branch
 from workers.actor_manager import ActorDeaths
 from workers.actors import ExplorerActor, LearnerActor, LevelServiceActor
-from workers.ray_driver import AsyncRun, ExplorerPool, RemoteLearner, Workers
+from workers.ray_async import AsyncRun
+from workers.ray_handles import ExplorerPool, RemoteLearner
 from workers.ray_restarts import RemoteService
+from workers.ray_start import Workers
 from workers.ued_step import UEDRun
 
 

@@ -44,8 +44,10 @@ from ued.config import TrainConfig
 from ued.curricula import ACCEL, Branch
 from workers.actor_manager import Call
 from workers.durable_service import Slot
-from workers.ray_driver import AsyncRun, Batch, RemoteLearner, Workers
+from workers.ray_async import AsyncRun
+from workers.ray_handles import Batch, RemoteLearner
 from workers.ray_restarts import SERVICE, RemoteService
+from workers.ray_start import Workers
 from workers.ued_step import LevelRequest, UEDRun
 
 BACKGROUND_KEY = 0xC0471  # folded into the seed: the key chain of the Explorers' batches

@@ -20,7 +20,7 @@ from ued.run_folder import TrainedPolicy
 from ued.suites import EvalSuite
 from workers.actors import SuiteEvaluatorActor
 from workers.evaluator import SuiteResult
-from workers.ray_driver import actor_env, connect, learner_gpus
+from workers.ray_start import actor_env, connect, learner_gpus
 
 
 def evaluate_on_ray(policy: TrainedPolicy, suite: EvalSuite, key: jax.Array, *,

@@ -16,7 +16,8 @@ from typing import Any
 from level_buffer import LevelBuffer
 from tabx.errors import UserError
 from ued.config import ConfigError
-from workers.ray_driver import RAY_RECORD, check_reachable
+from workers.ray_driver import RAY_RECORD
+from workers.ray_start import check_reachable
 
 
 def read_record(run_dir: str | Path) -> dict[str, Any]:

@@ -102,7 +102,7 @@ def connect(spec: SweepSpec, address: str | None, num_cpus: int | None) -> tuple
     kwargs: dict[str, Any] = {"logging_level": "ERROR", "log_to_driver": False,
                               "runtime_env": {"env_vars": worker_env(spec)}}
     if address:
-        from workers.ray_driver import check_reachable
+        from workers.ray_start import check_reachable
 
         if address != "auto":
             check_reachable(address)

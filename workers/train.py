@@ -34,7 +34,8 @@ from ued.run_folder import (
 from workers.continuous import ContinuousRun
 from workers.driver import Callback, Driver
 from workers.local import LocalDriver
-from workers.ray_driver import RayDriver, keep_driver_off_accelerators
+from workers.ray_driver import RayDriver
+from workers.ray_start import keep_driver_off_accelerators
 from workers.resume import step_intact
 
 
