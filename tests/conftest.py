@@ -17,8 +17,15 @@ from tabx import xla_flags
 # are the same bit for bit, and tabx.compile_counter counts a load as a compilation, so the
 # no-recompile tests count the same. tests/test_compile_cache.py points the cache at folders
 # of its own.
-_COMPILE_CACHE = tempfile.mkdtemp(prefix="tabx-test-xla-")
-atexit.register(shutil.rmtree, _COMPILE_CACHE, ignore_errors=True)
+# The suite runs in two pytest-xdist worker processes (pyproject.toml): the controller makes
+# the folder, and its workers, which inherit its environment, share it.
+_SESSION_CACHE = "TABX_TEST_SESSION_COMPILE_CACHE"
+if os.environ.get("PYTEST_XDIST_WORKER") and os.environ.get(_SESSION_CACHE):
+    _COMPILE_CACHE = os.environ[_SESSION_CACHE]
+else:
+    _COMPILE_CACHE = tempfile.mkdtemp(prefix="tabx-test-xla-")
+    atexit.register(shutil.rmtree, _COMPILE_CACHE, ignore_errors=True)
+    os.environ[_SESSION_CACHE] = _COMPILE_CACHE
 os.environ["TABX_COMPILE_CACHE_DIR"] = _COMPILE_CACHE
 
 # Two CPU devices on every machine, whatever its core count (the `tabx` command makes one per
@@ -61,3 +68,23 @@ def optimizing_compiler(monkeypatch):
 
     for option, value in OPTIMIZING_COMPILER_OPTIONS.items():
         monkeypatch.setitem(jit_options.LEARNER_CPU_OPTIONS, option, value)
+
+
+def pytest_xdist_auto_num_workers(config) -> int:
+    """`-n auto`: one worker per core, at most 4 (each worker holds a JAX process, and the Ray
+    test modules a Ray of 3 CPUs each)."""
+    return max(1, min(os.cpu_count() or 1, 4))
+
+
+# The files that take longest, longest first (`pytest --durations=0`, summed per file): each
+# worker takes the next file when it is done, so starting these first leaves short files to
+# fill the end instead of one worker running a long file alone while the other waits.
+LONGEST_FILES = ("test_ray_async.py", "test_ray_driver.py", "test_ray_cluster.py",
+                 "test_sweep.py", "test_ray_bench.py", "test_learners_learning.py", "test_rnd.py",
+                 "test_train_cli.py", "test_fuzz_inputs.py", "test_learners.py",
+                 "test_learner_group.py", "test_ued_train.py", "test_kill_resume.py")
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    rank = {name: i for i, name in enumerate(LONGEST_FILES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))

@@ -59,7 +59,16 @@ class StubRunner(Runner):
         return self.state, done
 
 
-def test_ctrl_c_writes_a_checkpoint_of_the_step_under_way(tmp_path):
+@pytest.fixture
+def python_sigint_handler():
+    """Python's own SIGINT handler, as `tabx train` has it: a test that ran earlier in this
+    process (one that started Ray, say) may have left another in place."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+def test_ctrl_c_writes_a_checkpoint_of_the_step_under_way(tmp_path, python_sigint_handler):
     config = tiny_config(**{"run.checkpoint_every": 100, "run.log_every": 1})
 
     def interrupt(step, state, metrics):

@@ -1,6 +1,8 @@
 """The Ray driver on one machine: its deterministic mode equals the local driver (parameters and
-level-buffer files, Robust PLR, ACCEL and SFL), its asynchronous mode bounds staleness and
-commits every issued batch exactly once, and the local mode never imports Ray.
+level-buffer files, Robust PLR, ACCEL and SFL) through chaos kills, a killed level service and a
+resume on other Explorers; its refusals and placement; and the local mode never imports Ray.
+The asynchronous schedule's runs are in tests/test_ray_async.py, `tabx bench ued` in
+tests/test_ray_bench.py (other modules, so that the two test processes share the Ray tests).
 
 One Ray (3 logical CPUs) serves the module; runs use the UED tests' tiny config (2 archers v 1
 farmer, 4 envs x 16 steps), so each run costs its actors' start-up and compilation, seconds.
@@ -105,34 +107,6 @@ def test_deterministic_mode_equals_the_local_driver(tmp_path, method):
         "service", "learner", "explorer-0", "explorer-1"}
 
 
-def test_asynchronous_mode_bounds_staleness_and_commits_every_batch_once(tmp_path):
-    # Half the steps train on replayed levels while the Explorer scores new ones ahead, and no
-    # lag is allowed: any score whose policy moved on before it came back must be re-scored.
-    # Chaos kills the Explorer or the service every 0.2 s besides: nothing may change that.
-    config = ray_config("robust_plr", **{"ray.max_policy_lag": 0, "ray.max_inflight": 2,
-                                         "ued.replay_prob": 0.5, "ued.buffer_size": 32,
-                                         "ued.min_fill_ratio": 0.25, "ray.explorers": 1,
-                                         "ray.chaos_kill_every_s": 0.2,
-                                         "ray.chaos_roles": "service,explorer"})
-    out = io.StringIO()
-    run_dir = train(config, run_dir=tmp_path / "async", stream=out, max_updates=8)
-    record = json.loads((run_dir / RAY_RECORD).read_text())
-    assert record["mode"] == "asynchronous"
-    assert record["chaos_kills"] >= 2 and "(ray.chaos_kill_every_s=0.2)" in out.getvalue()
-    # (A kill is seen as a death only where a call found the actor down.)
-    assert sum(record["restarts"].values()) <= record["chaos_kills"], out.getvalue()[-3000:]
-    assert set(record["staleness"]) <= {"0"}  # nothing older than max_policy_lag committed
-    assert record["ledger"] == {"committed": 8}  # every issued batch committed
-    new = record["branches"]["new"]
-    assert record["committed_batches"] == new and new >= 2
-    buffer = LevelBuffer.load(run_dir / LEVELS_DIR / "buffer-8.msgpack")
-    # Each committed batch offered its 4 levels once: no batch lost, none counted twice.
-    assert buffer.stats["insert_attempts"] == 4 * new
-    versions = buffer.column("policy_version")
-    assert versions.min() >= 0 and versions.max() <= record["branches"]["replay"]
-    assert "explorers 1" in out.getvalue() and "trained" in out.getvalue()
-
-
 def test_zero_explorers_score_on_the_learner(tmp_path):
     config = ray_config("accel", **{"ray.explorers": 0})
     run_dir = train(config, run_dir=tmp_path / "zero", stream=io.StringIO(), max_updates=5)
@@ -211,45 +185,6 @@ def test_the_local_mode_never_imports_ray():
     assert done.returncode == 0, done.stderr[-2000:]
 
 
-def test_ued_bench_measures_the_same_work_on_both_drivers():
-    from tabx_bench.ued import format_table, ray_overhead, run_ued_bench
-
-    out = io.StringIO()
-    results = run_ued_bench(ued_config("accel"), explorers=[1], warmup=2, steps=3, stream=out)
-    assert [r.label for r in results] == ["local", "ray, 0 explorers, deterministic",
-                                          "ray, 1 explorer"]
-    local, deterministic, asynchronous = results
-    # The deterministic schedule replays the local driver's steps: the same branches, the
-    # same env steps trained and explored.
-    assert deterministic.branches == local.branches and sum(local.branches.values()) == 3
-    assert (deterministic.trained_steps, deterministic.explored_steps) == (
-        local.trained_steps, local.explored_steps)
-    assert local.trained_steps + local.explored_steps == 3 * 4 * 16  # 4 envs x 16 steps each
-    assert asynchronous.trained_steps > 0 and asynchronous.seconds > 0
-    assert 0 < asynchronous.learner_busy_fraction <= 1
-    assert ray_overhead(results) is not None
-    table = format_table(results)
-    assert "Ray overhead on the local driver's work" in table and "ray, 1 explorer " in table
-    assert out.getvalue().count("env steps/s") == 3  # one progress line per setting
-
-
-def test_ued_bench_cli_rejects_bad_arguments(capsys):
-    from tabx_ued.cli import main
-
-    with pytest.raises(SystemExit) as exit_:
-        main(["bench", "ued", "--explorers", "1,-2"])
-    assert exit_.value.code == 2 and "--explorers" in capsys.readouterr().err
-    with pytest.raises(SystemExit) as exit_:
-        main(["bench", "ued", "--steps", "0"])
-    assert exit_.value.code == 2 and "--steps" in capsys.readouterr().err
-    for bad in (["--simulate", "0,8"], ["--simulate", "8", "--batch-s", "0"]):
-        with pytest.raises(SystemExit) as exit_:
-            main(["bench", "ued", *bad])
-        assert exit_.value.code == 2 and bad[-2] in capsys.readouterr().err
-    assert main(["bench", "ued", "configs/marl/mappo_grid.yaml"]) == 2
-    assert "ued.method: tabx bench ued needs a UED config" in capsys.readouterr().err
-
-
 def duel_suite(folder):
     """A two-entry suite on the evaluation tests' duels, whose outcome does not depend on the
     policy (the weak allies lose, the weak enemies lose): win rates 0 then 1."""
@@ -288,47 +223,6 @@ def test_eval_suite_on_a_ray_actor_gives_the_local_table(tmp_path, capsys):
                            "--address joins a Ray cluster: give --ray too")):
         assert main(argv) == 2
         assert message in capsys.readouterr().err
-
-
-def test_an_explorer_killed_mid_batch_restarts_and_its_batches_are_reissued(tmp_path,
-                                                                              monkeypatch):
-    # SIGKILL the Explorer's own process right after the third batch went to it: that batch
-    # (and any other in flight) dies with it, must be re-issued with the current policy to
-    # the restarted Explorer, and committed exactly once.
-    import signal
-
-    from workers.ray_async import AsyncRun
-
-    killed: list[int] = []
-    submitted = {"n": 0}
-    original = AsyncRun._submit
-
-    def submit_then_kill(self, batch):
-        actor = self.scorers[batch.explorer]
-        if submitted["n"] == 0:
-            killed.append(ray.get(actor.pid.remote()))  # before any batch: answers at once
-        original(self, batch)
-        submitted["n"] += 1
-        if submitted["n"] == 3:
-            os.kill(killed[0], signal.SIGKILL)
-
-    monkeypatch.setattr(AsyncRun, "_submit", submit_then_kill)
-    config = ray_config("robust_plr", **{"ray.explorers": 1, "ray.max_inflight": 2,
-                                         "ued.replay_prob": 0.5, "ued.buffer_size": 32,
-                                         "ued.min_fill_ratio": 0.25})
-    out = io.StringIO()
-    run_dir = train(config, run_dir=tmp_path / "killed", stream=out, max_updates=10)
-    record = json.loads((run_dir / RAY_RECORD).read_text())
-    assert record["restarts"] == {"explorer-0": 1}, out.getvalue()[-2000:]
-    assert record["reissued"] >= 1
-    assert "ray: explorer-0 died" in out.getvalue() and "re-issued" in out.getvalue()
-    assert record["ledger"] == {"committed": 10}  # nothing lost
-    new = record["branches"]["new"]
-    assert record["committed_batches"] == new
-    buffer = LevelBuffer.load(run_dir / LEVELS_DIR / "buffer-10.msgpack")
-    assert buffer.stats["insert_attempts"] == 4 * new  # nothing counted twice
-    with pytest.raises(ProcessLookupError):
-        os.kill(killed[0], 0)  # the process really died
 
 
 def test_chaos_kills_leave_the_deterministic_run_equal_to_the_local_one(tmp_path,
@@ -392,53 +286,6 @@ def test_a_ray_run_resumed_with_other_explorers_equals_an_uninterrupted_local_ru
         remote / LEVELS_DIR / f"buffer-{ACCEL_STEPS}.msgpack").read_bytes()
 
 
-def test_an_evaluator_killed_mid_evaluation_runs_it_again_on_its_restart(tmp_path,
-                                                                          monkeypatch):
-    import signal
-
-    from ued.tensorboard import read_scalars
-    from workers.ray_async import AsyncRun
-
-    suite = duel_suite(tmp_path)
-    killed = []
-    original = AsyncRun.submit_evaluation
-
-    def submit_then_kill(self, done):
-        pid = ray.get(self.workers.evaluator.pid.remote()) if not killed else None
-        original(self, done)
-        if pid is not None:  # the first evaluation is in flight (it compiles): kill it
-            os.kill(pid, signal.SIGKILL)
-            killed.append(done)
-
-    monkeypatch.setattr(AsyncRun, "submit_evaluation", submit_then_kill)
-    config = ray_config("robust_plr", **{"ray.explorers": 1, "ued.eval_suites": f"[{suite}]",
-                                         "ued.eval_every": 2})
-    out = io.StringIO()
-    run_dir = train(config, run_dir=tmp_path / "eval-killed", stream=out, max_updates=6)
-    record = json.loads((run_dir / RAY_RECORD).read_text())
-    assert killed == [2] and record["status"] == "finished"
-    assert record["restarts"] == {"evaluator": 1}, out.getvalue()[-2000:]
-    # The killed evaluation, and any sent before the death was seen, ran again; none lost.
-    assert record["evaluations_rerun"] >= 1 and record["evaluations_lost"] == 0
-    assert "ray: evaluator died" in out.getvalue()
-    assert "duels.yaml after step 2 runs again on its restart" in out.getvalue()
-    # Every evaluation was logged, the killed one from the restarted Evaluator.
-    logged = read_scalars(run_dir / "events")["eval/duels/mean_win_rate"]
-    assert sorted(step for step, _ in logged) == [2 * 64, 4 * 64, 6 * 64]
-
-
-def test_ued_bench_times_an_explorer_restart():
-    from tabx_bench.ued import bench_restart
-
-    out = io.StringIO()
-    # The session's compilation cache (tests/conftest.py): the Explorer's programs load.
-    result = bench_restart(ray, ued_config("robust_plr"), True, out,
-                           cache_dir=os.environ["TABX_COMPILE_CACHE_DIR"])
-    assert result.first_score_s > 0 and 0 < result.ready_s <= result.restarted_score_s
-    assert result.service_commits == 50 and result.service_ready_s > 0  # none lost, or raises
-    assert "restart, compilation cache on: Explorer back in" in out.getvalue()
-
-
 def kill_service_at(run_dir, steps):
     """A progress callback that SIGKILLs the level service's own process after these steps."""
     import signal
@@ -475,7 +322,9 @@ def test_a_killed_service_restarts_with_every_commit_and_the_run_equals_the_loca
                                                             ).read_bytes(), name
 
 
-@pytest.mark.slow  # the asynchronous chaos test kills the service every 0.2 s and asserts this
+# With `-m slow`: tests/test_ray_async.py's chaos test kills the service every 0.2 s and asserts
+# this.
+@pytest.mark.slow
 def test_a_killed_service_loses_no_committed_batch_in_the_asynchronous_mode(tmp_path):
     # Explorer batches in flight when the service dies lose their levels with it: they are
     # asked for again and committed once; every commit acknowledged before the death stays.
@@ -493,48 +342,6 @@ def test_a_killed_service_loses_no_committed_batch_in_the_asynchronous_mode(tmp_
     assert record["committed_batches"] == new
     buffer = LevelBuffer.load(run_dir / LEVELS_DIR / "buffer-10.msgpack")
     assert buffer.stats["insert_attempts"] == 4 * new  # none lost, none counted twice
-
-
-def test_a_long_run_holds_no_more_object_refs_at_its_end_and_can_be_inspected_while_it_runs(
-        tmp_path):
-    # 40 asynchronous steps: refs of levels, scores and parameters are released once used,
-    # so the driver's reference table (and the objects it pins) stays flat. After step 3 a
-    # user asks from another process, as `tabx runs buffer|status RUN` does, what it holds.
-    from tabx_ued.cli import main
-
-    run_dir = tmp_path / "long"
-    seen, inspected = {}, {}
-
-    def count(done, train_state, values):
-        seen[done] = values["ray/driver_refs"]
-        if done == 3:  # the run is going: ask from outside, as a user would
-            for what in ("buffer", "status"):
-                inspected[what] = subprocess.run(
-                    [sys.executable, "-m", "tabx_ued", "runs", what, str(run_dir)],
-                    capture_output=True, text=True, timeout=120)
-
-    config = ray_config("robust_plr", **{"ray.explorers": 1, "ued.replay_prob": 0.5,
-                                         "ued.buffer_size": 32, "ued.min_fill_ratio": 0.25,
-                                         "learner.total_timesteps": 40 * 64,
-                                         "run.log_every": 1})
-    train(config, run_dir=run_dir, stream=io.StringIO(), max_updates=40, callback=count)
-    early = max(seen[s] for s in range(5, 15))
-    late = max(seen[s] for s in range(30, 41))
-    assert 0 < late <= early + 2, seen
-
-    buffer = inspected["buffer"]
-    assert buffer.returncode == 0, buffer.stderr[-2000:]
-    assert f"{run_dir} (live): " in buffer.stdout and " / 32 levels" in buffer.stdout
-    assert "policy versions:" in buffer.stdout  # the summary of tabx buffer inspect
-    status = inspected["status"]
-    assert status.returncode == 0, status.stderr[-2000:]
-    assert f"{run_dir}: running; asynchronous schedule; step 3 of 40" in status.stdout
-    assert "explorer-0" in status.stdout and "learner" in status.stdout
-    # Over: the record says so, and the live buffer points to the snapshots.
-    record = json.loads((run_dir / RAY_RECORD).read_text())
-    assert record["status"] == "finished" and record["steps"] == [0, 40]
-    assert main(["runs", "buffer", str(run_dir)]) == 2
-    assert main(["runs", "status", str(tmp_path / "nowhere")]) == 2
 
 
 # With `-m slow`: tests/test_ray_schedule.py's continuous tests (stand-in Ray) check that every

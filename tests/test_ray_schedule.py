@@ -63,11 +63,12 @@ class SlowRay:
         return refs[:num_returns], refs[num_returns:]
 
 
-def run_async(max_policy_lag: int, steps: int = 14):
-    config = ued_config("robust_plr", **{
+def run_async(max_policy_lag: int, steps: int = 14, method: str = "robust_plr",
+              buffer_size: int = 32):
+    config = ued_config(method, **{
         "ray.enabled": "true", "ray.explorers": 1, "ray.max_inflight": 2,
-        "ray.max_policy_lag": max_policy_lag, "ued.replay_prob": 0.5, "ued.buffer_size": 32,
-        "ued.min_fill_ratio": 0.25})
+        "ray.max_policy_lag": max_policy_lag, "ued.replay_prob": 0.5,
+        "ued.buffer_size": buffer_size, "ued.min_fill_ratio": 0.25})
     ray = SlowRay()
     learner_actor, explorer_actor = LearnerActor(config), ExplorerActor(config)
     explorer_actor.cache.fetch = ray.get
@@ -106,6 +107,17 @@ def test_stale_scores_are_rescored_and_every_batch_committed_once(max_policy_lag
         assert schedule.stats.rescored == 0 and max(lags) >= 1
     versions = service.buffer.column("policy_version")
     assert np.all(versions <= schedule.learner.version)
+
+
+def test_accel_children_are_asked_for_before_a_commit_can_evict_their_parents():
+    """ACCEL's mutate step names the levels the replay step just drew; the results it commits
+    while it waits for a free Explorer insert levels that, in a buffer of one batch, evict
+    those parents. The children are asked for first, so every mutate step finds them."""
+    schedule, branches, service = run_async(max_policy_lag=100, steps=16, method="accel",
+                                            buffer_size=4)
+    assert Branch.MUTATE in branches and branches.count(Branch.REPLAY) >= 2
+    assert schedule.ledger == dict.fromkeys(range(len(branches)), "committed")
+    assert service.buffer.stats["insert_attempts"] == 4 * schedule.stats.committed
 
 
 def test_sfl_batches_go_to_every_explorer_before_any_result_is_awaited():

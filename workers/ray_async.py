@@ -132,8 +132,11 @@ class AsyncRun:
         """Issue step `step` (the schedule's `explore`): the service makes its levels
         (`request`), an Explorer scores them; the driver holds only the refs. Committed when
         the result arrives (`collect`)."""
-        i = self._free_explorer()
+        # The levels are asked for before waiting for an Explorer: waiting commits finished
+        # batches, and an insert sent before an ACCEL `mutate_ids` could evict the replayed
+        # parents it names (the service answers one caller's calls in the order sent).
         levels = self.actors.send(Call.of(SERVICE, request.method, *request.args))
+        i = self._free_explorer()
         batch = Batch(step, request, key, learner.version, i, levels)
         score = self.config.ued.score
         # Rebuilt at every sending: the current policy, the levels as asked for last (the
