@@ -228,17 +228,20 @@ def test_eval_suite_on_a_ray_actor_gives_the_local_table(tmp_path, capsys):
 def test_chaos_kills_leave_the_deterministic_run_equal_to_the_local_one(tmp_path,
                                                                        local_accel):
     # Every 2 steps chaos kills the next of service, explorer-0, explorer-1 (Ray's kill, as a
-    # user's cluster would see it): the run still equals the local driver's, byte for byte.
-    # With snapshots every 4 steps the service comes back from the start and its log (after
-    # step 2), from the snapshot of the step just done (4), and from a snapshot and its log (6).
+    # user's cluster would see it), and the service's own process is SIGKILLed after step 5:
+    # the run still equals the local driver's, byte for byte. With snapshots every 4 steps the
+    # service comes back from the session's start and its log (after step 2) and from the
+    # snapshot of step 4 and its log (after step 5).
     method = "accel"
     local = local_accel
     out = io.StringIO()
+    run_dir = tmp_path / "chaos"
     remote = train(ray_config(method, **{"ray.deterministic": "true", "ray.explorers": 2,
                                          "ray.chaos_kill_every": 2,
                                          "ray.chaos_roles": "explorer,service",
                                          **ACCEL_CONFIG}),
-                   run_dir=tmp_path / "chaos", stream=out, max_updates=ACCEL_STEPS)
+                   run_dir=run_dir, stream=out, max_updates=ACCEL_STEPS,
+                   callback=kill_service_at(run_dir, {5}))
     record = json.loads((remote / RAY_RECORD).read_text())
     assert record["mode"] == "deterministic" and set(record["placement"]) == {
         "service", "learner", "explorer-0", "explorer-1"}
@@ -246,7 +249,9 @@ def test_chaos_kills_leave_the_deterministic_run_equal_to_the_local_one(tmp_path
     for victim, step in (("service", 2), ("explorer-0", 4), ("explorer-1", 6)):
         assert (f"ray: chaos: killed {victim} after step {step} (ray.chaos_kill_every=2)"
                 in out.getvalue())
-    assert record["restarts"].get("service", 0) <= 1, out.getvalue()[-2000:]
+    # (Ray's kill is seen as a death only where a call found the service down; SIGKILL is.)
+    assert 1 <= record["restarts"].get("service", 0) <= 2, out.getvalue()[-2000:]
+    assert "ray: service died" in out.getvalue()
     state_a, key_a, _ = final_state(local, ued_config(method))
     state_b, key_b, _ = final_state(remote, ued_config(method))
     assert trees_equal(state_a.params, state_b.params) and np.array_equal(key_a, key_b)
@@ -298,6 +303,9 @@ def kill_service_at(run_dir, steps):
     return kill
 
 
+# With `-m slow`: the chaos test above SIGKILLs the service after step 5 (snapshot and log)
+# and kills it after step 2 (the session's start and its log), with the same equality.
+@pytest.mark.slow
 def test_a_killed_service_restarts_with_every_commit_and_the_run_equals_the_local_one(
         tmp_path, local_accel):
     # Deterministic: killed after step 3 (it restores from the start of the session and its
