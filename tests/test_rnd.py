@@ -123,7 +123,9 @@ def test_intrinsic_reward_falls_on_states_seen_repeatedly():
     seen_0, unseen_0 = error(state.params, seen), error(state.params, unseen)
     rewards = []
     key = jax.random.key(1)
-    for _ in range(30):
+    # 20 updates: the last five's intrinsic reward is 0.38 of the first two's, the seen
+    # states' error 0.33 of its start against 0.37 for the unseen ones (0.47 at 15).
+    for _ in range(20):
         key, k = jax.random.split(key)
         state, metrics, _ = learner.update(state, levels, k)
         rewards.append(float(metrics["rnd/intrinsic_reward"]))
