@@ -339,6 +339,7 @@ class LevelBuffer:
         s = self._slots
         order: np.ndarray | None = None  # score order of a full buffer, kept up to date
         neg_sorted: np.ndarray | None = None
+        score_part: tuple[np.ndarray | None, Any] = (None, None)  # (order, its weighted P_score)
 
         def reorder(slot: int, old: float, new: float) -> None:
             nonlocal order, neg_sorted
@@ -381,8 +382,9 @@ class LevelBuffer:
                     order = W.score_order(s["score"])
                     neg_sorted = -s["score"][order]
                 rho = self.config.staleness_coeff
-                w = ((1.0 - rho) * self._score_weights_from_order(order)
-                     + rho * W.staleness_weights(s["timestamp"], self.clock))
+                if score_part[0] is not order:  # P_score changes only with the order
+                    score_part = (order, (1.0 - rho) * self._score_weights_from_order(order))
+                w = score_part[1] + rho * W.staleness_weights(s["timestamp"], self.clock)
                 slot = int(np.argmin(w))
             self.clock += 1
             if not s["score"][slot] < score:

@@ -6,8 +6,9 @@ driver can tell) and returns what a real one returns: episode metrics and `learn
 scores and best returns (float64). It pulls the policy parameters of each new version, as a
 real Explorer does. The learner is a stand-in too (`--learner-s` per replay step, the replayed
 ids and their scores back). Everything else is real: the continuous schedule's driver
-(`workers.continuous.ContinuousRun`), the `LevelServiceActor` (the config's generator makes
-every batch of fresh levels) and its commit log, fsynced in a temporary folder.
+(`workers.continuous.ContinuousRun`), the `LevelServiceActor` (it inserts every batch) and its
+commit log, fsynced in a temporary folder; the stand-ins make each batch's fresh levels with
+the config's real generator, as Explorers do on the continuous schedule.
 
 Per Explorer count it reports committed Explorer batches/s against the ideal N / batch time,
 the driver's CPU seconds per committed batch (its process time over the window), the level
@@ -40,18 +41,33 @@ from ued.config import TrainConfig
 
 
 class SleepExplorer:
-    """A stand-in Explorer: each batch takes `batch_s` seconds; scores of the right size."""
+    """A stand-in Explorer: each batch takes `batch_s` seconds; scores of the right size; fresh
+    levels made with the config's real generator, as a real Explorer makes them."""
 
-    def __init__(self, batch_s: float, num_envs: int):
+    def __init__(self, batch_s: float, num_envs: int, config: TrainConfig | None = None):
         self.batch_s, self.num_envs = batch_s, num_envs
         self.version = -1
         self.rng = np.random.default_rng(0)
+        self.generator = None
+        if config is not None:
+            from ued.experiment import learner_for
+            from workers.ued_step import generator_for
+
+            self.generator = generator_for(config, learner_for(config))
 
     def ready(self) -> bool:
         return True
 
     def pid(self) -> int:
         return os.getpid()
+
+    def score_fresh(self, params: Any, levels_key: Any, n: int, key: Any, score: str
+                    ) -> tuple[dict[str, Any], np.ndarray, np.ndarray, Any]:
+        """`ExplorerActor.score_fresh`: the levels made here (real generator), then a sleep."""
+        from workers.level_service import to_host
+
+        levels = to_host(self.generator.sample(levels_key, n))
+        return (*self.score_levels(params, levels, key, score), levels)
 
     def score_levels(self, params: Any, levels: Any, key: Any, score: str,
                      max_returns: Any = None, num_steps: int | None = None
@@ -154,7 +170,8 @@ def simulate(ray: Any, config: TrainConfig, explorers: int, batch_s: float, lear
         hosts = [ray.remote(SleepExplorer).options(
             num_cpus=0, runtime_env=env,
             max_concurrency=min(per_process, explorers - start)
-        ).remote(batch_s, config.learner.num_envs) for start in range(0, explorers, per_process)]
+        ).remote(batch_s, config.learner.num_envs, config)
+            for start in range(0, explorers, per_process)]
         handles = [hosts[i // per_process] for i in range(explorers)]
         actors = [service_actor, learner_actor, *hosts]
         try:

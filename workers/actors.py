@@ -31,13 +31,14 @@ from ued import compile_cache
 from ued.config import TrainConfig
 from ued.experiment import learner_for
 from ued.learners.ppo import PPOLearner
+from ued.levels import LevelGenerator
 from ued.suites import EvalSuite
 from workers.durable_service import DurableLevelService
 from workers.evaluator import Evaluator, SuiteResult
 from workers.explorer import Explorer
 from workers.learner import LearnerWorker
 from workers.level_service import to_device, to_host
-from workers.ued_step import evaluators_for, level_service_for
+from workers.ued_step import evaluators_for, generator_for, level_service_for
 
 # An actor's process is started by Ray, not by the `tabx` command: it applies the command's
 # XLA settings itself (one CPU device per usable core of its node), when Ray loads the actor
@@ -141,6 +142,8 @@ class ExplorerActor(ActorBase):
         self.learner = learner if learner is not None else learner_for(config)
         self.explorer = Explorer(self.learner, config.ued.score)
         self.cache = ParamsCache()
+        self.config = config
+        self.generator: LevelGenerator | None = None  # built on the first `score_fresh`
 
     def score_levels(self, params: ParamsRef, levels: EnvParams, key: jax.Array, score: str,
                      max_returns: Any = None, num_steps: int | None = None
@@ -148,6 +151,19 @@ class ExplorerActor(ActorBase):
         metrics, scores, best = self.explorer.score_levels(
             self.cache.get(params), to_device(levels), key, score, max_returns, num_steps)
         return _host_metrics(metrics), scores, best
+
+    def score_fresh(self, params: ParamsRef, levels_key: jax.Array, n: int, key: jax.Array,
+                    score: str) -> tuple[dict[str, float], np.ndarray, np.ndarray, EnvParams]:
+        """Make `n` fresh levels from `levels_key` (the level service's generator, a pure
+        function of its key: the same levels the service would make) and score them; the
+        levels come back on the host with the scores, for the service to insert. Keeps the
+        generator's CPU off the level service (`ray.schedule: continuous`)."""
+        if self.generator is None:
+            self.generator = generator_for(self.config, self.learner)
+        levels = self.generator.sample(levels_key, n)
+        metrics, scores, best = self.explorer.score_levels(
+            self.cache.get(params), levels, key, score, None, None)
+        return _host_metrics(metrics), scores, best, to_host(levels)
 
     def learnability(self, params: ParamsRef, levels: EnvParams, key: jax.Array,
                      num_steps: int | None = None) -> np.ndarray:

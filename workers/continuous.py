@@ -6,7 +6,10 @@ For the curricula that score levels they do not train on (Robust PLR, ACCEL):
     Explorers   each keeps `ray.max_inflight` batches of fresh levels (ACCEL: the children of
                 the newest replay batches first) in flight, scored with the newest policy the
                 learner has published; a result is committed as it arrives, unless its policy
-                is more than `ray.max_policy_lag` versions old (then it is scored again)
+                is more than `ray.max_policy_lag` versions old (then it is scored again). An
+                Explorer makes a batch's fresh levels itself from the key the driver gave the
+                batch (the generator is a pure function of its key: the levels the service
+                would make); they come back with the scores and the service only inserts them
     learner     every step is a replay step: it trains on a batch the level service drew,
                 handed to it by ref (the levels never pass through the driver); the step
                 waits until the buffer holds `ued.min_fill_ratio` of its capacity
@@ -100,19 +103,26 @@ class ContinuousRun(AsyncRun):
         return keys[2 * index], keys[2 * index + 1]
 
     def issue(self, i: int) -> None:
+        """Explorer `i`'s next batch: ACCEL's children (made by the service), else fresh
+        levels the Explorer makes itself from the batch's key (`score_fresh`: the generator
+        is a pure function of its key, so the levels are the ones the service would make,
+        and the service only inserts)."""
         n = self.config.learner.num_envs
         k_levels, key = self.batch_keys(self.issued)
+        score = self.config.ued.score
+        then = "its batches are re-issued with the current policy on its restart"
         if self.requests:
             request, levels = self.requests.popleft()
+            batch = Batch(self.issued, request, key, self.learner.version, i, levels)
+            batch.score = Call(self.names[i], "score_levels",
+                               lambda: (self.learner.params, levels.ref, key, score, None,
+                                        None), then=then, after=(levels,))
         else:
             request = LevelRequest("fresh", (k_levels, n), Source.RANDOM)
-            levels = self.actors.send(Call.of(SERVICE, "fresh", k_levels, n))
-        batch = Batch(self.issued, request, key, self.learner.version, i, levels)
-        score = self.config.ued.score
-        batch.score = Call(self.names[i], "score_levels",
-                           lambda: (self.learner.params, levels.ref, key, score, None, None),
-                           then="its batches are re-issued with the current policy on its "
-                                "restart", after=(levels,))
+            batch = Batch(self.issued, request, key, self.learner.version, i, None)
+            batch.score = Call(self.names[i], "score_fresh",
+                               lambda: (self.learner.params, k_levels, n, key, score),
+                               then=then)
         self.batches[self.issued] = "issued"
         self.issued += 1
         self._submit(batch)
@@ -144,6 +154,21 @@ class ContinuousRun(AsyncRun):
             self.top_up()
         self.service.settle(block=False)
 
+    def accept(self, ref: Any, result: Any = None) -> tuple[Batch, Any, Any, int] | None:
+        """`AsyncRun.accept`; a `score_fresh` result also brings its levels: kept on the
+        batch (`made`) for its insert."""
+        batch = self.pending[ref]
+        if batch.levels is None:
+            if result is None:
+                try:
+                    result = self.ray.get(ref)
+                except Exception:  # AsyncRun.accept fetches it again and re-issues the batch
+                    result = None
+            if result is not None:
+                batch.made = result[3]
+                result = result[:3]
+        return super().accept(ref, result)
+
     def commit_group(self, group: list[tuple[Batch, Any, Any, int]]) -> None:
         """Offer the scored batches of `group` to the buffer in one call (one fsync)."""
         calls = []
@@ -156,8 +181,11 @@ class ContinuousRun(AsyncRun):
             self.stats.staleness[lag] += 1
             self.recent_lags.append(lag)
             self.stats.explored_steps += self.config.learner.steps_per_update
-        levels = tuple(batch.levels for batch, *_ in group)
+        levels = tuple(batch.made if batch.levels is None else batch.levels
+                       for batch, *_ in group)
         self.service.send_group(calls, levels)
+        for batch, *_ in group:
+            batch.made = None  # held by the group's call until it is acknowledged
         self.group_commits += 1
 
     def drain(self) -> None:

@@ -164,7 +164,7 @@ class AsyncRun:
         service makes the same levels (an ACCEL parent is still in the buffer, since the
         inserts after it run after it, as before)."""
         for batch in sorted(self.pending.values(), key=lambda b: b.step):
-            if self.actors.lost_with_restart(batch.levels):
+            if batch.levels is not None and self.actors.lost_with_restart(batch.levels):
                 self.actors.send(batch.levels)
 
     def collect(self, block: bool) -> None:

@@ -134,10 +134,12 @@ class Batch:
     key: jax.Array
     version: int  # of the policy it was (last) sent with
     explorer: int
-    levels: Call  # to the service: its ref is the numpy levels
+    levels: Call | None  # to the service: its ref is the numpy levels (None: the Explorer
+    # makes them from the key, `ExplorerActor.score_fresh`)
     score: Call | None = None  # to the Explorer (its arguments: the current policy)
     issued_s: float = field(default_factory=time.perf_counter)
     rescored: int = 0
+    made: Any = None  # the levels an Explorer made (`levels` None), once its result is in
 
 
 @dataclass

@@ -83,19 +83,22 @@ class RemoteService:
         if call in self.unanswered:
             self.unanswered.remove(call)
 
-    def send_group(self, calls: list[tuple[str, tuple, dict]], values: tuple[Call, ...] = ()
+    def send_group(self, calls: list[tuple[str, tuple, dict]], values: tuple[Any, ...] = ()
                    ) -> Call:
         """A group commit (`DurableLevelService.apply_many`): the state-changing calls
-        `calls` ([method, args, kwargs]; an argument `Slot(i)` stands for the result of the
-        service's call `values[i]`, levels it made), numbered, applied in order and made
-        durable with one fsync; not waited for. After a restart the levels are asked for
-        again before the group is sent again."""
+        `calls` ([method, args, kwargs]; an argument `Slot(i)` stands for `values[i]`: the
+        result of the service's call `values[i]`, levels it made, or levels an Explorer made,
+        held by the driver), numbered, applied in order and made durable with one fsync; not
+        waited for. After a restart the service's levels are asked for again before the group
+        is sent again."""
         numbered = []
         for method, args, kwargs in calls:
             self.seq += 1
             numbered.append((self.seq, method, tuple(args), dict(kwargs)))
+        made_here = tuple(c for c in values if isinstance(c, Call))
         return self._track(Call(SERVICE, "apply_many",
-                                lambda: (numbered, *(c.ref for c in values)), after=values))
+                                lambda: (numbered, *(c.ref if isinstance(c, Call) else c
+                                                     for c in values)), after=made_here))
 
     def _track(self, call: Call) -> Call:
         self.actors.send(call)

@@ -54,15 +54,21 @@ from workers.resume import state_problem
 T = TypeVar("T")
 
 
-def level_service_for(config: TrainConfig, learner: PPOLearner) -> LevelService:
-    """The LevelService of a UED config: its generator starts from the config's scenarios,
-    prepared by `learner` (so the opponent's tier is written into them)."""
+def generator_for(config: TrainConfig, learner: PPOLearner) -> LevelGenerator:
+    """The level generator of a UED config: it starts from the config's scenarios, prepared
+    by `learner` (so the opponent's tier is written into them). A pure function of its key:
+    the level service and an Explorer make the same levels from the same key."""
     env_config, base_levels = scenario_levels(config)
     # The base levels carry the opponent's tier, so generated levels start from it.
     base = learner.prepare_levels(jax.tree.map(jnp.asarray, stack_levels(base_levels)))
-    generator = LevelGenerator(env_config, base, config.levels)
+    return LevelGenerator(env_config, base, config.levels)
+
+
+def level_service_for(config: TrainConfig, learner: PPOLearner) -> LevelService:
+    """The LevelService of a UED config, with `generator_for`'s generator."""
+    generator = generator_for(config, learner)
     ued = config.ued
-    template = jax.tree.map(lambda x: np.asarray(x)[0], base)
+    template = jax.tree.map(lambda x: np.asarray(x)[0], generator.base_levels)
     return LevelService(generator, template, ued, seed=config.seed,
                         use_buffer=curriculum_entry(ued.method).uses_buffer)
 
@@ -359,4 +365,4 @@ def branch_text(counts: dict[Branch, int], buffer_size: int | None) -> str:
 
 
 __all__ = ["LevelRequest", "Schedule", "UEDRun", "branch_text", "evaluators_for",
-           "level_service_for", "level_summary", "local_workers"]
+           "generator_for", "level_service_for", "level_summary", "local_workers"]
