@@ -32,7 +32,8 @@ class NullWriter:
 
 def test_eta_rate_leaves_intervals_that_compiled_out():
     t = FakeTime()
-    clock = ThroughputClock(0, 100, seconds=lambda: t.now, compile_seconds=lambda: t.compiling)
+    clock = ThroughputClock(0, 100, seconds=lambda: t.now, compile_seconds=lambda: t.compiling,
+                            min_clean_updates=1)
     t.run(1.0, compiling=20.0)  # update 1: compiled
     timing, rate = clock.read(1)
     assert timing == {"time/first_update_s": 21.0} and math.isnan(rate)
@@ -47,12 +48,27 @@ def test_eta_rate_leaves_intervals_that_compiled_out():
     assert clock.eta_steps_per_s == 3 * 100 / 6.0  # updates 3-5 only
 
 
+def test_eta_waits_for_min_clean_updates():
+    t = FakeTime()
+    clock = ThroughputClock(0, 100, seconds=lambda: t.now, compile_seconds=lambda: t.compiling)
+    t.run(1.0, compiling=20.0)
+    clock.read(1)
+    for update in (2, 3):
+        t.run(1.0)
+        clock.read(update)
+        assert math.isnan(clock.eta_steps_per_s)  # 1, then 2 compile-free updates: too few
+    t.run(1.0)
+    clock.read(4)
+    assert clock.eta_steps_per_s == 100.0
+
+
 def test_first_run_of_a_new_program_does_not_inflate_the_eta():
     """A new program's first run costs time that no compile event reports (measured on the
     quickstart: the replay branch's first step at update 2, the buffer's larger shapes
     later); the interval holding it is left out whole, so the first ETA is the steady one."""
     t = FakeTime()
-    clock = ThroughputClock(0, 100, seconds=lambda: t.now, compile_seconds=lambda: t.compiling)
+    clock = ThroughputClock(0, 100, seconds=lambda: t.now, compile_seconds=lambda: t.compiling,
+                            min_clean_updates=1)
     t.run(1.0, compiling=20.0)
     clock.read(1)
     t.run(1.0 + 12.0, compiling=15.0)  # update 2: compiled, and 12 s unreported beside it
@@ -84,7 +100,8 @@ def test_eta_falls_back_when_every_interval_compiles():
 
 def test_progress_line_eta_uses_the_compile_free_rate():
     t = FakeTime()
-    clock = ThroughputClock(0, 100, seconds=lambda: t.now, compile_seconds=lambda: t.compiling)
+    clock = ThroughputClock(0, 100, seconds=lambda: t.now, compile_seconds=lambda: t.compiling,
+                            min_clean_updates=1)
     stream = io.StringIO()
     bar = Progress(100, stream, every_s=0.0)
     writer = NullWriter()

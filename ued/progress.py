@@ -74,19 +74,22 @@ class ThroughputClock:
     compiled the first time each branch runs, and again when the level buffer grows into a
     larger shape; an evaluation's first run). Leaving out only the compile time those events
     report is not enough: the first run of a new program also costs time that no compile
-    event reports (the persistent cache's key and write, the program's first dispatch), enough
-    to make the quickstart's first ETA read well over the real remaining time (docs/cli.md has
-    the measurements). So an interval that compiled is left out whole. Until a compile-free interval has been seen the
-    rate is NaN (no ETA yet), unless `fallback_after` intervals have all compiled: then it is
-    the rate since the first read with the compile time left out. `seconds` and
-    `compile_seconds` (the process's running totals, `tabx.compile_counter.compile_seconds`)
+    event reports (e.g. the persistent cache's key and write, the program's first dispatch),
+    enough to make the quickstart's first ETA read about twice the real remaining time
+    (docs/cli.md has the measurements). So an interval that compiled is left out whole, and
+    until the compile-free intervals hold `min_clean_updates` updates the rate is NaN (no ETA
+    yet: one interval on a shared machine is too noisy), unless `fallback_after` intervals
+    have all compiled: then it is the rate since the first read with the compile time left
+    out. `seconds` and `compile_seconds` (the process's running totals,
+    `tabx.compile_counter.compile_seconds`)
     can be replaced to test it."""
 
     def __init__(self, start_update: int, steps_per_update: int,
                  seconds: Callable[[], float] = time.perf_counter,
                  compile_seconds: Callable[[], float] = compile_seconds,
-                 fallback_after: int = 3):
+                 fallback_after: int = 3, min_clean_updates: int = 3):
         self.steps_per_update = steps_per_update
+        self.min_clean_updates = min_clean_updates
         self.fallback_after = fallback_after
         self.first_update_s: float | None = None
         self.eta_steps_per_s = math.nan
@@ -124,7 +127,7 @@ class ThroughputClock:
             if compiling == self._compiled_at:
                 self._clean[0] += done - self._update
                 self._clean[1] += now - self._t
-            if self._clean[1] > 0:
+            if self._clean[0] >= self.min_clean_updates and self._clean[1] > 0:
                 self.eta_steps_per_s = self._clean[0] * self.steps_per_update / self._clean[1]
             elif self._intervals >= self.fallback_after:  # something compiles every time
                 t0, c0, u0 = self._since
