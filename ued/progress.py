@@ -68,22 +68,37 @@ class ThroughputClock:
     `time/explored_steps_per_s`; `time/steps_per_s` stays their sum. Without `trained` every
     step trained.
 
-    `eta_steps_per_s` is the rate an ETA should use: env steps per second since the first
-    read, leaving out the time spent compiling. A run compiles more than its first update (a
-    UED curriculum's replay and mutation steps are programs of their own, compiled the first
-    time each branch runs); counted in, one such compilation can make the first ETA of a
-    few-minute run read ten times too long. `seconds` and `compile_seconds` (the process's
-    running totals, `tabx.compile_counter.compile_seconds`) can be replaced to test it."""
+    `eta_steps_per_s` is the rate an ETA should use: env steps per second over the intervals
+    between reads (after the first) in which nothing compiled. A run compiles more than its
+    first update (a UED curriculum's replay and mutation steps are programs of their own,
+    compiled the first time each branch runs, and again when the level buffer grows into a
+    larger shape; an evaluation's first run). Leaving out only the compile time those events
+    report is not enough: the first run of a new program also costs time that no compile
+    event reports (e.g. the persistent cache's key and write, the program's first dispatch),
+    enough to make the quickstart's first ETA read about twice the real remaining time
+    (docs/cli.md has the measurements). So an interval that compiled is left out whole, and
+    until the compile-free intervals hold `min_clean_updates` updates the rate is NaN (no ETA
+    yet: one interval on a shared machine is too noisy), unless `fallback_after` intervals
+    have all compiled: then it is the rate since the first read with the compile time left
+    out. `seconds` and `compile_seconds` (the process's running totals,
+    `tabx.compile_counter.compile_seconds`)
+    can be replaced to test it."""
 
     def __init__(self, start_update: int, steps_per_update: int,
                  seconds: Callable[[], float] = time.perf_counter,
-                 compile_seconds: Callable[[], float] = compile_seconds):
+                 compile_seconds: Callable[[], float] = compile_seconds,
+                 fallback_after: int = 3, min_clean_updates: int = 3):
         self.steps_per_update = steps_per_update
+        self.min_clean_updates = min_clean_updates
+        self.fallback_after = fallback_after
         self.first_update_s: float | None = None
         self.eta_steps_per_s = math.nan
         self._seconds, self._compile_seconds = seconds, compile_seconds
         self._t, self._update, self._trained = seconds(), start_update, None
         self._since: tuple[float, float, int] | None = None  # (time, compile time, update)
+        self._compiled_at = 0.0  # the compile-time total at the previous read
+        self._clean = [0, 0.0]  # updates and seconds of the compile-free intervals
+        self._intervals = 0  # intervals since the first read
 
     @property
     def first_pending(self) -> bool:
@@ -108,11 +123,19 @@ class ThroughputClock:
                 trained_rate = (trained - self._trained) * self.steps_per_update / seconds
                 out = {"time/trained_steps_per_s": trained_rate,
                        "time/explored_steps_per_s": rate - trained_rate}
-            t0, c0, u0 = self._since
-            running = (now - t0) - (compiling - c0)
-            if running > 0:
-                self.eta_steps_per_s = (done - u0) * self.steps_per_update / running
+            self._intervals += 1
+            if compiling == self._compiled_at:
+                self._clean[0] += done - self._update
+                self._clean[1] += now - self._t
+            if self._clean[0] >= self.min_clean_updates and self._clean[1] > 0:
+                self.eta_steps_per_s = self._clean[0] * self.steps_per_update / self._clean[1]
+            elif self._intervals >= self.fallback_after:  # something compiles every time
+                t0, c0, u0 = self._since
+                running = (now - t0) - (compiling - c0)
+                if running > 0:
+                    self.eta_steps_per_s = (done - u0) * self.steps_per_update / running
         self._t, self._update, self._trained = now, done, trained
+        self._compiled_at = compiling
         return out, rate
 
 
@@ -148,9 +171,7 @@ def log_update(writer: SummaryWriter | None, bar: Progress | None, callback, don
     if bar is not None:
         rate = steps_per_s if math.isfinite(steps_per_s) and steps_per_s > 0 else math.nan
         eta_rate = rate if eta_steps_per_s is None else eta_steps_per_s
-        if not (math.isfinite(eta_rate) and eta_rate > 0):
-            eta_rate = rate
-        eta = (num_updates - done) * steps_per_update / eta_rate
+        eta = (num_updates - done) * steps_per_update / eta_rate if eta_rate > 0 else math.nan
         bar.show(done, steps, rate, eta, values.get("episode/win_rate", math.nan), final=last,
                  first_update_s=values.get("time/first_update_s"), extra=extra,
                  trained_per_s=values.get("time/trained_steps_per_s"),
