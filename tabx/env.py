@@ -27,8 +27,8 @@ from tabx.combat import attackable_pairs, nearest_targets, resolve_attacks
 from tabx.geometry import facing, field_of_view, in_ellipses, pairwise_offsets, view_trig
 from tabx.observe import action_mask, cooldown_ready, observe, pick_legal, world_state
 from tabx.params import EnvConfig, EnvParams
-from tabx.physics import integrate, resolve_collisions, resolve_collisions_sequential, wall_contact
-from tabx.profiles import CORPSE_DRIFT, CORPSE_VISION, SEQUENTIAL_COLLISIONS, reference_choice
+from tabx.physics import integrate, resolve_collisions, wall_contact
+from tabx.profiles import CORPSE_DRIFT, CORPSE_VISION, reference_choice
 from tabx.reward import dense_reward, team_hp_ratio, winner_mask
 from tabx.rng import random_words, to_unit_float
 from tabx.selection import materialise
@@ -163,11 +163,9 @@ class TabxEnv:
         position = integrate(state.position, state.velocity, dt)
         position, touching = wall_contact(position, u.radius, ph.arena_size)
         wall_loss = jnp.where(touching & able, ph.boundary_damage_rate * u.max_health * dt, 0.0)
-        bodies = (position, state.velocity, u.radius, u.mass, u.active.astype(bool),
-                  ph.restitution, ph.slop, ph.percent)
-        position = jnp.where(reference_choice(params, SEQUENTIAL_COLLISIONS),
-                             resolve_collisions_sequential(*bodies)[0],
-                             resolve_collisions(*bodies)[0])
+        position, _ = resolve_collisions(position, state.velocity, u.radius, u.mass,
+                                         u.active.astype(bool), ph.restitution, ph.slop,
+                                         ph.percent)
         position = wall_contact(position, u.radius, ph.arena_size)[0]
 
         # 2. Actions. Materialised: XLA would otherwise fuse a policy's whole per-unit

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 
 def integrate(position: jax.Array, velocity: jax.Array, dt: jax.Array) -> jax.Array:
@@ -69,36 +68,3 @@ def resolve_collisions(position: jax.Array, velocity: jax.Array, radius: jax.Arr
     new_position = position - jnp.sum((correction * share)[..., None] * normal, axis=1)
     new_velocity = velocity - inv_mass[:, None] * jnp.sum(impulse[..., None] * normal, axis=1)
     return new_position, new_velocity
-
-
-def resolve_collisions_sequential(position: jax.Array, velocity: jax.Array, radius: jax.Array,
-                                  mass: jax.Array, solid: jax.Array, restitution: jax.Array,
-                                  slop: jax.Array, percent: jax.Array
-                                  ) -> tuple[jax.Array, jax.Array]:
-    """The reference's pass: the same pair rule as `resolve_collisions`, applied to the pairs
-    (i < j) one after the other in unit-index order, each pair seeing the positions and
-    velocities the earlier pairs left (Gauss-Seidel). Profile choice `sequential-collisions`."""
-    first, second = (jnp.asarray(a, jnp.int32) for a in np.triu_indices(position.shape[0], 1))
-    inv_mass = 1.0 / jnp.maximum(mass, 1e-6)
-
-    def pair(k: jax.Array, carry: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, jax.Array]:
-        p, v = carry
-        i, j = first[k], second[k]
-        rel = p[j] - p[i]
-        dist = jnp.sqrt(jnp.sum(rel * rel))
-        coincident = dist < 1e-8
-        normal = jnp.where(coincident, jnp.array([1.0, 0.0]), rel / jnp.maximum(dist, 1e-8))
-        depth = radius[i] + radius[j] - jnp.where(coincident, 0.0, dist)
-        overlap = solid[i] & solid[j] & (depth > 0)
-        inv_sum = inv_mass[i] + inv_mass[j]
-        v_normal = jnp.sum((v[j] - v[i]) * normal)
-        approaching = v_normal <= 0
-        correction = jnp.where(overlap, jnp.where(approaching, jnp.maximum(depth - slop, 0.0),
-                                                  depth) * percent, 0.0) * normal / inv_sum
-        impulse = jnp.where(overlap & approaching,
-                            -(1.0 + restitution) * v_normal / inv_sum, 0.0) * normal
-        p = p.at[i].add(-correction * inv_mass[i]).at[j].add(correction * inv_mass[j])
-        v = v.at[i].add(-impulse * inv_mass[i]).at[j].add(impulse * inv_mass[j])
-        return p, v
-
-    return jax.lax.fori_loop(0, first.shape[0], pair, (position, velocity))

@@ -38,7 +38,6 @@ BUSH_BOX = 1 << 6  # a ranger is "in the bush" inside the nearest bush's boundin
 ASSASSIN_CURRENT_SPEED = 1 << 7  # the assassin role reads the current (swamp-slowed) speed
 CORPSE_DRIFT = 1 << 8  # a unit that dies keeps the velocity of its last move one more step
 CORPSE_VISION = 1 << 9  # a dead teammate inside a bush still shares what it sees there
-SEQUENTIAL_COLLISIONS = 1 << 10  # collisions resolved pair by pair in unit-index order
 
 CHOICES: dict[str, int] = {
     "epsilon-moves": EPSILON_MOVES,
@@ -51,7 +50,6 @@ CHOICES: dict[str, int] = {
     "assassin-current-speed": ASSASSIN_CURRENT_SPEED,
     "corpse-drift": CORPSE_DRIFT,
     "corpse-vision": CORPSE_VISION,
-    "sequential-collisions": SEQUENTIAL_COLLISIONS,
 }
 ALL_CHOICES = sum(CHOICES.values())
 
@@ -96,6 +94,6 @@ def reference_choice(params: EnvParams, choice: int) -> jax.Array:
 
 __all__ = ["ALL_CHOICES", "ASSASSIN_CURRENT_SPEED", "BUSH_BOX", "CHOICES", "CORPSE_DRIFT",
            "CORPSE_VISION", "DEFAULT_PROFILE", "EPSILON_MOVES", "KITE_MOVE_POINT",
-           "MEMORY_REACH", "PROFILES", "PROFILE_NAMES", "SEARCH_RIGHT", "SEQUENTIAL_COLLISIONS",
-           "TURN_IN_PLACE", "TURN_PREDICTION", "check_profile", "profile_name",
+           "MEMORY_REACH", "PROFILES", "PROFILE_NAMES", "SEARCH_RIGHT", "TURN_IN_PLACE",
+           "TURN_PREDICTION", "check_profile", "profile_name",
            "reference_choice", "with_profile"]

@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from envtools import A0, A1, A2, CONFIG, E0, KEY, N, level, unit, zone
+from envtools import A0, A1, CONFIG, E0, KEY, N, level, unit, zone
 
 from tabx import constants as C
 from tabx import profiles as P
@@ -219,22 +219,6 @@ def _team_health() -> Case:
     return Case(lv, check, None, prepare=near_the_limit)
 
 
-def _sequential_collisions() -> Case:
-    # Three farmers (radius 1) in a row, each overlapping the next by 0.5: the simultaneous
-    # pass pushes the middle one both ways equally, so it stays; the reference's pass settles
-    # pair (0, 1) first, and pair (1, 2) then sees the moved middle farmer.
-    lv = level([unit("farmer", 0, 0), unit("farmer", 1.5, 0), unit("farmer", 3, 0)],
-               [HIDDEN_ENEMY], [HIDING_BUSH], heuristic=greedy())
-
-    def check(ours, ref):
-        assert ours.after.position[0, A1, 0] == pytest.approx(1.5, abs=1e-6)
-        assert abs(ref.after.position[0, A1, 0] - 1.5) > 0.01
-        # The outer farmers move apart in both.
-        for t in (ours, ref):
-            assert t.after.position[0, A0, 0] < 0 and t.after.position[0, A2, 0] > 3
-    return Case(lv, check, P.SEQUENTIAL_COLLISIONS)
-
-
 CASES: dict[str, Callable[[], Case]] = {
     "epsilon-moves": _epsilon_moves,
     "kite-move-point": _kite_move_point,
@@ -246,7 +230,6 @@ CASES: dict[str, Callable[[], Case]] = {
     "assassin-current-speed": _assassin_current_speed,
     "corpse-drift": _corpse_drift,
     "corpse-vision": _corpse_vision,
-    "sequential-collisions": _sequential_collisions,
     "team-health": _team_health,
 }
 
