@@ -21,6 +21,7 @@ ref then fails and the run stops as it does when its one learner dies.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
@@ -121,16 +122,31 @@ def coordinator_address(ray: Any, placement_group: Any) -> str:
 
 
 def start_group(ray: Any, count: int, gpus: float,
-                spawn: Callable[[int, tuple[str, int, int], Any], Any]) -> LearnerGroup:
+                spawn: Callable[[int, tuple[str, int, int], Any], Any],
+                timeout_s: float) -> LearnerGroup:
     """`count` learner actors in one placement group; `spawn(i, (coordinator, count, i),
-    scheduling_strategy)` starts member i."""
+    scheduling_strategy)` starts member i. The group waits at most `timeout_s` to be placed
+    (the cluster may hold enough in all while other jobs reserve it), then fails in one line
+    naming the resource it lacks."""
     from ray.util.placement_group import placement_group
     from ray.util.scheduling_strategies import PlacementGroupSchedulingStrategy
 
-    bundle = {"GPU": gpus} if gpus else {"CPU": 1}
-    group = placement_group([dict(bundle) for _ in range(count)],
+    from ued.config import ConfigError
+
+    resource, each = ("GPU", gpus) if gpus else ("CPU", 1.0)
+    group = placement_group([{resource: each} for _ in range(count)],
                             strategy="PACK" if gpus else "SPREAD")
-    ray.get(group.ready())
+    t0 = time.monotonic()
+    placed, _ = ray.wait([group.ready()], timeout=timeout_s)
+    if not placed:
+        ray.util.remove_placement_group(group)
+        free = ray.available_resources().get(resource, 0)
+        total = ray.cluster_resources().get(resource, 0)
+        raise ConfigError(f"ray.placement_timeout_s: after {time.monotonic() - t0:.0f} s the "
+                          f"learner group ({count} learners x {each:g} {resource}) is not "
+                          f"placed: the cluster has {free:g} {resource} free of {total:g}; "
+                          f"add nodes with {resource}, or ask for less (ray.learners, "
+                          f"ray.learner_gpus)")
     coordinator = coordinator_address(ray, group)
     members = [spawn(i, (coordinator, count, i), PlacementGroupSchedulingStrategy(
         group, placement_group_bundle_index=i)) for i in range(count)]
