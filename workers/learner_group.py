@@ -72,7 +72,7 @@ class LearnerGroup:
 
 
 class Restarts:
-    """A run's restarts from its last checkpoint after a stop for a lost actor (its learner or
+    """A run's restarts from its last checkpoint after a stop for its lost learner (or
     a learner group's member: the group stops as a whole), up to `limit`: each is logged with
     the steps it loses (done since that checkpoint, played again) and counted in `ray.json`
     (`learner_restarts`, `steps_lost`)."""
