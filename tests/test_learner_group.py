@@ -222,3 +222,16 @@ def test_only_a_lost_learner_restarts_the_run(tmp_path):
     with pytest.raises(RunStopped, match="explorer-0 died"):
         explorer.run(config, tmp_path, stream=io.StringIO())
     assert explorer.sessions == 1
+
+
+def test_members_on_one_machine_share_its_cores():
+    """`share_cores`: member r of n on one machine keeps the r-th slice of the CPUs it may
+    use (before JAX starts, so XLA sizes its thread pools to it); one member keeps all. In a
+    child process: the pinning is the process's own."""
+    code = ("import os; from ued.learners.distributed import share_cores; "
+            "cpus = sorted(os.sched_getaffinity(0)); per = len(cpus) // 2; "
+            "assert share_cores(0, 1) == cpus; "
+            "mine = share_cores(1, 2); "
+            "assert mine == (cpus[per:2 * per] if per else cpus), mine; "
+            "assert sorted(os.sched_getaffinity(0)) == mine")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=60)

@@ -4,7 +4,8 @@
                                 each), SPREAD over CPU nodes, PACKed on GPU nodes
       learner 0  (bundle 0)     hosts JAX's coordinator at HOST:PORT of its node (the driver
                                 picks the port with a task in bundle 0 and hands it to all)
-      learner i  (bundle i)     joins it (`ued.learners.distributed.join`) in its constructor
+      learner i  (bundle i)     joins it (`ued.learners.distributed.join`) in its constructor,
+                                pinned to its share of its node's cores (`share_cores`)
 
 Every member holds the same train state and receives the same calls with the same arguments
 (`init`, `train`, `train_scored`, `set_train_state`): each puts only its share of the envs on
@@ -122,12 +123,12 @@ def coordinator_address(ray: Any, placement_group: Any) -> str:
 
 
 def start_group(ray: Any, count: int, gpus: float,
-                spawn: Callable[[int, tuple[str, int, int], Any], Any],
+                spawn: Callable[[int, tuple[str, int, int, int, int], Any], Any],
                 timeout_s: float) -> LearnerGroup:
-    """`count` learner actors in one placement group; `spawn(i, (coordinator, count, i),
-    scheduling_strategy)` starts member i. The group waits at most `timeout_s` to be placed
-    (the cluster may hold enough in all while other jobs reserve it), then fails in one line
-    naming the resource it lacks."""
+    """`count` learner actors in one placement group; `spawn(i, (coordinator, count, i,
+    rank on its node, members on its node), scheduling_strategy)` starts member i. The group
+    waits at most `timeout_s` to be placed (the cluster may hold enough in all while other
+    jobs reserve it), then fails in one line naming the resource it lacks."""
     from ray.util.placement_group import placement_group
     from ray.util.scheduling_strategies import PlacementGroupSchedulingStrategy
 
@@ -148,8 +149,13 @@ def start_group(ray: Any, count: int, gpus: float,
                           f"add nodes with {resource}, or ask for less (ray.learners, "
                           f"ray.learner_gpus)")
     coordinator = coordinator_address(ray, group)
-    members = [spawn(i, (coordinator, count, i), PlacementGroupSchedulingStrategy(
-        group, placement_group_bundle_index=i)) for i in range(count)]
+    # Members on one node split its cores (`distributed.share_cores`): their XLA thread pools
+    # and gloo threads would otherwise contend for the same cores.
+    where = ray.util.placement_group_table(group).get("bundles_to_node_id", {})
+    nodes = [where.get(i, where.get(str(i), i)) for i in range(count)]
+    members = [spawn(i, (coordinator, count, i, nodes[:i].count(node), nodes.count(node)),
+                     PlacementGroupSchedulingStrategy(group, placement_group_bundle_index=i))
+               for i, node in enumerate(nodes)]
     return LearnerGroup(members, group, coordinator)
 
 
