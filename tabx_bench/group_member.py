@@ -15,14 +15,13 @@ from typing import Any
 
 def member(address: str, learners: int, index: int, options: dict[str, Any],
            out: str) -> None:
-    """Member INDEX of a group of N: its own share of the cores (`share_cores`, unless
-    TABX_BENCH_SHARE_CORES=0), the `tabx` command's XLA settings (its share of the cores as
+    """Member INDEX of a group of N: its own share of the cores where TABX_SHARE_CORES=1
+    (`share_cores`), the `tabx` command's XLA settings (its share of the cores as
     devices, set by `run_group`), then the group and the benchmark."""
-    import os
 
     from ued.learners import distributed
 
-    if os.environ.get("TABX_BENCH_SHARE_CORES", "1") != "0":
+    if distributed.sharing_cores():
         distributed.share_cores(index, learners)
     from tabx import xla_flags
 

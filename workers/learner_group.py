@@ -5,7 +5,7 @@
       learner 0  (bundle 0)     hosts JAX's coordinator at HOST:PORT of its node (the driver
                                 picks the port with a task in bundle 0 and hands it to all)
       learner i  (bundle i)     joins it (`ued.learners.distributed.join`) in its constructor,
-                                pinned to its share of its node's cores (`share_cores`)
+                                pinned to its share of its node's cores where asked (`share_cores`)
 
 Every member holds the same train state and receives the same calls with the same arguments
 (`init`, `train`, `train_scored`, `set_train_state`): each puts only its share of the envs on
@@ -149,8 +149,8 @@ def start_group(ray: Any, count: int, gpus: float,
                           f"add nodes with {resource}, or ask for less (ray.learners, "
                           f"ray.learner_gpus)")
     coordinator = coordinator_address(ray, group)
-    # Members on one node split its cores (`distributed.share_cores`): their XLA thread pools
-    # and gloo threads would otherwise contend for the same cores.
+    # Members on one node may split its cores (`distributed.share_cores`, TABX_SHARE_CORES=1):
+    # their XLA thread pools and gloo threads would otherwise contend for the same cores.
     where = ray.util.placement_group_table(group).get("bundles_to_node_id", {})
     nodes = [where.get(i, where.get(str(i), i)) for i in range(count)]
     members = [spawn(i, (coordinator, count, i, nodes[:i].count(node), nodes.count(node)),
