@@ -15,12 +15,17 @@ from typing import Any
 
 def member(address: str, learners: int, index: int, options: dict[str, Any],
            out: str) -> None:
-    """Member INDEX of a group of N: the `tabx` command's XLA settings (its share of
-    the cores as devices, set by `run_group`), then the group and the benchmark."""
+    """Member INDEX of a group of N: its own share of the cores where TABX_SHARE_CORES=1
+    (`share_cores`), the `tabx` command's XLA settings (its share of the cores as
+    devices, set by `run_group`), then the group and the benchmark."""
+
+    from ued.learners import distributed
+
+    if distributed.sharing_cores():
+        distributed.share_cores(index, learners)
     from tabx import xla_flags
 
     xla_flags.apply()
-    from ued.learners import distributed
 
     distributed.join(address, learners, index)
     from tabx_bench.train import run_train_bench  # after the group: JAX starts there

@@ -180,3 +180,58 @@ def test_a_learner_group_restart_counts_the_steps_since_the_checkpoint(tmp_path)
     assert not restarts.left()
     assert "restart 1 of 2 (ray.learner_restarts) after learner died: the run continues from " \
            "its checkpoint at step 4; 3 steps lost (3 in all)" in out.getvalue()
+
+
+def test_only_a_lost_learner_restarts_the_run(tmp_path):
+    """`ray.learner_restarts` answers a stop for the lost learner (or a group member, which
+    stops the group: its learner 0 dies) alone; a stop for another actor (Ray restarted it in
+    place until its budget was spent) ends the run. Sessions stood in for; the Ray run:
+    tests/test_ray_driver.py, -m slow."""
+    import io
+    from types import SimpleNamespace
+
+    import jax
+    import jax.numpy as jnp
+    from test_ued_train import ued_config
+
+    from ued.checkpoint import Checkpoints
+    from ued.run_folder import CHECKPOINT_DIR
+    from workers.driver import RunStopped
+    from workers.ray_driver import RayDriver
+
+    with Checkpoints(tmp_path / CHECKPOINT_DIR) as checkpoints:
+        checkpoints.save(2, {"w": jnp.zeros(2)}, jax.random.key(0))
+    config = ued_config("dr", **{"ray.enabled": "true", "ray.learner_restarts": 3})
+
+    class Stops(RayDriver):
+        def __init__(self, lost: list[str]):
+            super().__init__()
+            self.lost, self.sessions = lost, 0
+
+        def session(self, config, run_dir, **_):
+            self.sessions += 1
+            self.runner = SimpleNamespace(start=0, reached=3)
+            if self.lost:
+                raise RunStopped(f"{self.lost[0]} died", lost=self.lost.pop(0))
+            return run_dir
+
+    learner = Stops(["learner", "learner"])
+    assert learner.run(config, tmp_path, stream=io.StringIO()) == tmp_path
+    assert learner.sessions == 3
+    explorer = Stops(["explorer-0"])
+    with pytest.raises(RunStopped, match="explorer-0 died"):
+        explorer.run(config, tmp_path, stream=io.StringIO())
+    assert explorer.sessions == 1
+
+
+def test_members_on_one_machine_share_its_cores():
+    """`share_cores`: member r of n on one machine keeps the r-th slice of the CPUs it may
+    use (before JAX starts, so XLA sizes its thread pools to it); one member keeps all. In a
+    child process: the pinning is the process's own."""
+    code = ("import os; from ued.learners.distributed import share_cores; "
+            "cpus = sorted(os.sched_getaffinity(0)); per = len(cpus) // 2; "
+            "assert share_cores(0, 1) == cpus; "
+            "mine = share_cores(1, 2); "
+            "assert mine == (cpus[per:2 * per] if per else cpus), mine; "
+            "assert sorted(os.sched_getaffinity(0)) == mine")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=60)

@@ -155,6 +155,26 @@ def test_a_learner_gpu_on_a_cpu_only_ray_fails_after_the_placement_timeout(tmp_p
     assert time.perf_counter() - t0 < 15
 
 
+
+def test_a_learner_group_that_cannot_be_placed_fails_after_the_placement_timeout(tmp_path):
+    # `ray.learners: 2` asking for a GPU each on this CPU-only Ray: refused in one line naming
+    # both members. The group's placement group itself also waits at most the timeout (the
+    # cluster may hold enough in all while other jobs reserve it), and is then released.
+    from workers.learner_group import start_group
+
+    t0 = time.perf_counter()
+    with pytest.raises(ConfigError, match=r"the cluster has 0 GPU of the 2 the run reserves "
+                                          r"\(learner 1, learner-1 1\)"):
+        train(ray_config("dr", **{"ray.learners": 2, "ray.learner_gpus": 1,
+                                  "ray.placement_timeout_s": 0.5}),
+              run_dir=tmp_path / "gpus", stream=io.StringIO(), max_updates=1)
+    with pytest.raises(ConfigError, match=r"ray.placement_timeout_s: after \d+ s the learner "
+                                          r"group \(2 learners x 1 GPU\) is not placed: the "
+                                          r"cluster has 0 GPU free of 0"):
+        start_group(ray, 2, 1.0, lambda *_: pytest.fail("no member starts"), timeout_s=0.3)
+    assert time.perf_counter() - t0 < 10
+    assert all(pg["state"] == "REMOVED" for pg in ray.util.placement_group_table().values())
+
 def test_live_explorers_are_the_ones_answering():
     from workers.actor_manager import ActorManager
     from workers.ray_stats import live_actors

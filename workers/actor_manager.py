@@ -225,7 +225,7 @@ class ActorManager:
         member = self.culprit(err, call)
         if not member.restarts:
             raise RunStopped(f"{member.name} died ({death_cause(err)}); it is not "
-                             f"restarted") from err
+                             f"restarted", lost=member.name) from err
         call.failures += 1
         spent = call.failures >= self.max_failures  # the call's failure budget
         # The incarnation the call met: of its own actor, or of the one whose result it took.

@@ -174,14 +174,18 @@ class ExplorerActor(ActorBase):
 class LearnerActor(ExplorerActor):
     """The one learner: holds the train state and counts policy versions. It can also score
     (`ray.explorers: 0`), with its own parameters. With `group` (coordinator HOST:PORT,
-    members, this member's index) it is one member of a learner group
-    (workers/learner_group.py): it joins JAX's multi-process runtime before JAX starts."""
+    members, this member's index, its rank among the members on its node, their count) it is
+    one member of a learner group (workers/learner_group.py): it takes its share of its node's
+    cores (TABX_SHARE_CORES=1) and joins JAX's multi-process runtime before JAX starts."""
 
-    def __init__(self, config: TrainConfig, group: tuple[str, int, int] | None = None):
+    def __init__(self, config: TrainConfig,
+                 group: tuple[str, int, int, int, int] | None = None):
         if group is not None:
             from ued.learners import distributed
 
-            distributed.join(*group)
+            if distributed.sharing_cores():
+                distributed.share_cores(*group[3:])
+            distributed.join(*group[:3])
         super().__init__(config)
         self.group = group
         self.state: LearnerWorker | None = None

@@ -29,7 +29,12 @@ Callback = Callable[[int, Any, dict[str, float]], None]
 
 class RunStopped(RuntimeError):
     """A run stopped before its end for a reason outside the user's input (a worker died);
-    the message says how to continue it."""
+    the message says how to continue it. `lost`: the name of the lost actor that stopped it,
+    where one did ("learner" for the learner or any member of its learner group)."""
+
+    def __init__(self, message: str, lost: str = ""):
+        super().__init__(message)
+        self.lost = lost
 
 
 class Driver(abc.ABC):

@@ -4,7 +4,8 @@
                                 each), SPREAD over CPU nodes, PACKed on GPU nodes
       learner 0  (bundle 0)     hosts JAX's coordinator at HOST:PORT of its node (the driver
                                 picks the port with a task in bundle 0 and hands it to all)
-      learner i  (bundle i)     joins it (`ued.learners.distributed.join`) in its constructor
+      learner i  (bundle i)     joins it (`ued.learners.distributed.join`) in its constructor,
+                                pinned to its share of its node's cores where asked (`share_cores`)
 
 Every member holds the same train state and receives the same calls with the same arguments
 (`init`, `train`, `train_scored`, `set_train_state`): each puts only its share of the envs on
@@ -21,6 +22,7 @@ ref then fails and the run stops as it does when its one learner dies.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
@@ -71,7 +73,7 @@ class LearnerGroup:
 
 
 class Restarts:
-    """A run's restarts from its last checkpoint after a stop for a lost actor (its learner or
+    """A run's restarts from its last checkpoint after a stop for its lost learner (or
     a learner group's member: the group stops as a whole), up to `limit`: each is logged with
     the steps it loses (done since that checkpoint, played again) and counted in `ray.json`
     (`learner_restarts`, `steps_lost`)."""
@@ -121,19 +123,39 @@ def coordinator_address(ray: Any, placement_group: Any) -> str:
 
 
 def start_group(ray: Any, count: int, gpus: float,
-                spawn: Callable[[int, tuple[str, int, int], Any], Any]) -> LearnerGroup:
-    """`count` learner actors in one placement group; `spawn(i, (coordinator, count, i),
-    scheduling_strategy)` starts member i."""
+                spawn: Callable[[int, tuple[str, int, int, int, int], Any], Any],
+                timeout_s: float) -> LearnerGroup:
+    """`count` learner actors in one placement group; `spawn(i, (coordinator, count, i,
+    rank on its node, members on its node), scheduling_strategy)` starts member i. The group
+    waits at most `timeout_s` to be placed (the cluster may hold enough in all while other
+    jobs reserve it), then fails in one line naming the resource it lacks."""
     from ray.util.placement_group import placement_group
     from ray.util.scheduling_strategies import PlacementGroupSchedulingStrategy
 
-    bundle = {"GPU": gpus} if gpus else {"CPU": 1}
-    group = placement_group([dict(bundle) for _ in range(count)],
+    from ued.config import ConfigError
+
+    resource, each = ("GPU", gpus) if gpus else ("CPU", 1.0)
+    group = placement_group([{resource: each} for _ in range(count)],
                             strategy="PACK" if gpus else "SPREAD")
-    ray.get(group.ready())
+    t0 = time.monotonic()
+    placed, _ = ray.wait([group.ready()], timeout=timeout_s)
+    if not placed:
+        ray.util.remove_placement_group(group)
+        free = ray.available_resources().get(resource, 0)
+        total = ray.cluster_resources().get(resource, 0)
+        raise ConfigError(f"ray.placement_timeout_s: after {time.monotonic() - t0:.0f} s the "
+                          f"learner group ({count} learners x {each:g} {resource}) is not "
+                          f"placed: the cluster has {free:g} {resource} free of {total:g}; "
+                          f"add nodes with {resource}, or ask for less (ray.learners, "
+                          f"ray.learner_gpus)")
     coordinator = coordinator_address(ray, group)
-    members = [spawn(i, (coordinator, count, i), PlacementGroupSchedulingStrategy(
-        group, placement_group_bundle_index=i)) for i in range(count)]
+    # Members on one node may split its cores (`distributed.share_cores`, TABX_SHARE_CORES=1):
+    # their XLA thread pools and gloo threads would otherwise contend for the same cores.
+    where = ray.util.placement_group_table(group).get("bundles_to_node_id", {})
+    nodes = [where.get(i, where.get(str(i), i)) for i in range(count)]
+    members = [spawn(i, (coordinator, count, i, nodes[:i].count(node), nodes.count(node)),
+                     PlacementGroupSchedulingStrategy(group, placement_group_bundle_index=i))
+               for i, node in enumerate(nodes)]
     return LearnerGroup(members, group, coordinator)
 
 

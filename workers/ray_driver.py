@@ -81,6 +81,22 @@ def driver_refs(ray: Any) -> int:
     return len(ray._private.worker.global_worker.core_worker.get_all_reference_counts())
 
 
+def lost_learner(ray: Any, err: BaseException, workers: Workers | None) -> bool:
+    """Whether `err` stops the run for its lost learner (or a member of its learner group):
+    the one loss `ray.learner_restarts` answers. The other actors restart in place
+    (`ActorManager`); a stop after their restart budget, a call lost again and again, or the
+    driver's own node is not cured by starting everything again."""
+    if isinstance(err, RunStopped):
+        return err.lost == "learner"
+    if workers is None or not is_lost(ray, err):
+        return False  # lost before the learner was there: nothing says it was the learner
+    learner = workers.learner
+    members = learner.members if isinstance(learner, LearnerGroup) else [learner]
+    ids = [member._actor_id.hex() for member in members]
+    actor_id = getattr(err, "actor_id", None)  # else named in the message (as ActorManager reads)
+    return actor_id in ids if actor_id is not None else any(i in str(err) for i in ids)
+
+
 def stop_reason(ray: Any, err: BaseException) -> str | None:
     """Why the run stops where `err` means it cannot go on but can be resumed: a RunStopped
     (a learner lost, a call's failure budget spent, an actor not back) or a loss the
@@ -154,9 +170,10 @@ class RayDriver(Driver):
     def run(self, config: TrainConfig, run_dir: Path, *, resume: bool = False,
             max_updates: int | None = None, progress: bool = True,
             stream: TextIO | None = None, callback: Callback | None = None) -> Path:
-        """The run, continued from its last checkpoint after each stop for a lost actor (a
-        learner above all: Ray restarts the others in place) up to `ray.learner_restarts`
-        times (`workers.learner_group.Restarts`)."""
+        """The run, continued from its last checkpoint after each stop for its lost learner
+        (or a member of its learner group) up to `ray.learner_restarts` times
+        (`workers.learner_group.Restarts`); a stop for any other actor (restarted in place
+        by Ray until its own budget is spent) ends the run (`lost_learner`)."""
         need_ued(config)
         keep_driver_off_accelerators()
         stream = sys.stderr if stream is None else stream
@@ -169,7 +186,7 @@ class RayDriver(Driver):
                                     restarts=restarts)
             except RunStopped as stopped:
                 runner = self.runner
-                if runner is None or not restarts.left():
+                if runner is None or stopped.lost != "learner" or not restarts.left():
                     raise
                 max_updates = restarts.restart(run_dir, runner.start, runner.reached,
                                                max_updates, stopped, stream)
@@ -212,7 +229,8 @@ class RayDriver(Driver):
             stream.flush()
             record.update(status="stopped", error=reason)
             raise RunStopped(f"{run_dir}: {reason}; continue from the last checkpoint with: "
-                             f"tabx train --resume {run_dir}") from err
+                             f"tabx train --resume {run_dir}",
+                             lost="learner" if lost_learner(ray, err, workers) else "") from err
         finally:
             if workers is not None:
                 for actor in workers.all():

@@ -364,7 +364,8 @@ def start_workers(ray: Any, config: TrainConfig, stream: TextIO,
     if section.learners > 1:  # a learner group, placed by its own placement group
         learner = start_group(ray, section.learners, gpus, lambda i, group, strategy: spawn(
             LearnerActor, "learner" if i == 0 else f"learner-{i}", config, group,
-            num_gpus=gpus, num_cpus=1 if not gpus else 0, scheduling_strategy=strategy))
+            num_gpus=gpus, num_cpus=1 if not gpus else 0, scheduling_strategy=strategy),
+            section.placement_timeout_s)
     else:
         learner = spawn(LearnerActor, "learner", config, num_gpus=gpus,
                         num_cpus=1 if not gpus else 0,

@@ -29,6 +29,7 @@ checkpoint).
 from __future__ import annotations
 
 import functools
+import os
 import socket
 from typing import Any
 
@@ -57,6 +58,28 @@ def join(coordinator: str, num_processes: int, process_id: int, *,
                                initialization_timeout=int(timeout_s),
                                heartbeat_timeout_seconds=int(heartbeat_timeout_s),
                                shutdown_timeout_seconds=int(heartbeat_timeout_s))
+
+
+def sharing_cores() -> bool:
+    """Whether members on one machine pin themselves to their share of its cores
+    (TABX_SHARE_CORES=1). Off by default: on a machine shared with other work a pinned member
+    cannot move off a busy core (docs/benchmarks_distributed.md, "Learner groups")."""
+    return os.environ.get("TABX_SHARE_CORES", "0") == "1"
+
+
+def share_cores(rank: int, count: int) -> list[int]:
+    """Pin this process to its share of the CPUs it may run on: the `rank`-th of `count` equal
+    slices, for `count` members of a group on one machine (a remainder stays unused). Call
+    before JAX starts its backend: XLA sizes its CPU thread pools by this process's CPUs, so
+    the members' pools and gloo threads do not contend for the same cores. Returns the CPUs
+    kept (all of them where there are fewer CPUs than members, or one member)."""
+    cpus = sorted(os.sched_getaffinity(0))
+    per = len(cpus) // max(count, 1)
+    if count <= 1 or per == 0:
+        return cpus
+    mine = cpus[rank * per:(rank + 1) * per]
+    os.sched_setaffinity(0, mine)
+    return mine
 
 
 def leave() -> None:
@@ -127,4 +150,4 @@ def to_local(tree: Any, mesh: jax.sharding.Mesh, device: jax.Device) -> Any:
 
 
 __all__ = ["HEARTBEAT_TIMEOUT_S", "JOIN_TIMEOUT_S", "free_address", "group_devices", "join",
-           "leave", "spans_processes", "to_global", "to_local"]
+           "leave", "share_cores", "sharing_cores", "spans_processes", "to_global", "to_local"]
