@@ -2,7 +2,7 @@
 
 The default suite runs one end-to-end sweep (a 2 x 2 grid of tiny plain MARL runs and a bad
 trial, on a Ray started in this process) and the sweep file's checks; killing and resuming a
-sweep and the two-node cluster are `-m slow`.
+sweep, the two-node cluster and a lost node are `-m slow`.
 """
 
 from __future__ import annotations
