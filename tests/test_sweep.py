@@ -262,6 +262,6 @@ grid: {{seed: [0]}}
         assert after["state"] == "finished" and after["sessions"] == 2, after
         assert len(after["nodes"]) == 2 and after["nodes"][0] == lost.node_id
         log = (folder / "trials" / "seed0.log").read_text()
-        assert "session 2: resume" in log and log.count("already complete") == 0
+        assert log.count(": new run ") == 1 and log.count(": resume ") == 1, log
     finally:
         cluster.shutdown()
