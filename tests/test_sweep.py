@@ -2,7 +2,7 @@
 
 The default suite runs one end-to-end sweep (a 2 x 2 grid of tiny plain MARL runs and a bad
 trial, on a Ray started in this process) and the sweep file's checks; killing and resuming a
-sweep and the two-node cluster are `-m slow`.
+sweep, the two-node cluster and a lost node are `-m slow`.
 """
 
 from __future__ import annotations
@@ -216,5 +216,52 @@ grid: {{seed: [0, 1]}}
         records = _records(tmp_path / "sweeps" / "twonodes")
         nodes = {node for r in records.values() for node in r["nodes"]}
         assert len(records) == 2 and len(nodes) == 2
+    finally:
+        cluster.shutdown()
+
+
+@pytest.mark.slow
+def test_a_lost_nodes_trial_is_rescheduled_and_resumes_its_run_folder(tmp_path):
+    """The node running a trial is removed mid-trial (a cluster on 127.0.0.1: a head with no
+    CPUs for trials and two one-CPU nodes): Tune's retry runs it on the other node, where it
+    resumes its run folder from the last checkpoint, and it finishes once. (The default test
+    above covers a trial that runs in one go; the SIGKILLed-sweep test covers resuming.)"""
+    from ray.cluster_utils import Cluster
+
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 0})
+    workers = [cluster.add_node(num_cpus=1) for _ in range(2)]
+    cluster.wait_for_nodes()
+    folder = tmp_path / "sweeps" / "lostnode"
+    try:
+        path = write_spec(tmp_path, f"""
+name: lostnode
+base: base.yaml
+dir: {tmp_path / 'sweeps'}
+grid: {{seed: [0]}}
+""", base={"learner.total_timesteps": 64 * 60, "run.checkpoint_every": 2})
+        env = {**os.environ, "PYTHONPATH": str(ROOT)}
+        process = subprocess.Popen(
+            [sys.executable, "-m", "tabx_ued", "sweep", str(path), "--address",
+             cluster.address, "--table-every", "1"],
+            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 600
+        record: dict = {}
+        while time.monotonic() < deadline:  # a checkpoint written, the trial still running
+            record = _records(folder).get("seed0", {}) if folder.exists() else {}
+            if record.get("state") == "running" and 64 * 6 <= record.get("steps", 0) < 64 * 50:
+                break
+            time.sleep(0.2)
+        else:
+            process.kill()
+            pytest.fail(f"the trial did not get part-way in time: {record}")
+        [lost] = [w for w in workers if w.node_id == record["nodes"][0]]
+        cluster.remove_node(lost, allow_graceful=False)
+        _, err = process.communicate(timeout=900)
+        assert process.returncode == 0, err[-3000:]
+        after = _records(folder)["seed0"]
+        assert after["state"] == "finished" and after["sessions"] == 2, after
+        assert len(after["nodes"]) == 2 and after["nodes"][0] == lost.node_id
+        log = (folder / "trials" / "seed0.log").read_text()
+        assert log.count(": new run ") == 1 and log.count(": resume ") == 1, log
     finally:
         cluster.shutdown()

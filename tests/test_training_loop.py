@@ -208,6 +208,10 @@ def test_a_second_writer_of_a_run_folder_is_refused(tmp_path):
             assert "another process is training this run" in str(err)
         else:
             raise AssertionError("two writers of one run folder")
+        # A sweep's trial holds the lock itself and tells train so.
+        out = io.StringIO()
+        train(run_dir=run_dir, resume=True, driver=CountingDriver(), stream=out, locked=True)
+        assert "already complete" in out.getvalue()
     assert sorted(p.name for p in run_dir.iterdir()) == before
     holder = subprocess.Popen(
         # The same kernel lock as lock_run_dir's, without importing the project (seconds).
@@ -222,8 +226,14 @@ def test_a_second_writer_of_a_run_folder_is_refused(tmp_path):
                 raise AssertionError("a held run folder was locked twice")
         except ConfigError:
             pass
+        # A waiting lock (a sweep's trial) takes the folder once its holder is gone.
+        import threading
+
+        threading.Timer(1.0, holder.kill).start()  # SIGKILL: no cleanup runs in the holder
+        with lock_run_dir(run_dir, wait_s=30):
+            assert holder.wait(timeout=10) is not None
     finally:
-        holder.kill()  # SIGKILL: no cleanup runs in the holder
+        holder.kill()
         holder.wait(timeout=10)
     out = io.StringIO()
     train(run_dir=run_dir, resume=True, driver=CountingDriver(), stream=out)

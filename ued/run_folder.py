@@ -22,6 +22,7 @@ import fcntl
 import hashlib
 import os
 import tempfile
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import datetime
@@ -131,22 +132,29 @@ def check_writable(run_dir: str | Path, config: TrainConfig) -> None:
 
 
 @contextlib.contextmanager
-def lock_run_dir(run_dir: str | Path) -> Iterator[None]:
+def lock_run_dir(run_dir: str | Path, wait_s: float = 0.0) -> Iterator[None]:
     """Hold the run folder for one writer (a training process) while the block runs;
-    ConfigError at once if another process holds it. The lock is the kernel's `flock` on the
-    folder itself: no file is added, and it ends with the process however that ends (a
-    killed run never leaves a stale lock)."""
+    ConfigError if another process holds it (at once, or after waiting up to `wait_s` seconds
+    for it to let go). The lock is the kernel's `flock` on the folder itself: no file is added,
+    and it ends with the process however that ends (a killed run never leaves a stale lock)."""
     path = Path(run_dir)
     try:
         fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
     except OSError as err:
         raise ConfigError(f"{path}: cannot open the run folder ({err.strerror})") from None
     try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise ConfigError(f"{path}: another process is training this run; wait for it to "
-                              "end (or stop it) before resuming") from None
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    waited = f" (waited {wait_s:.0f} s)" if wait_s else ""
+                    raise ConfigError(f"{path}: another process is training this run{waited}; "
+                                      "wait for it to end (or stop it) before resuming"
+                                      ) from None
+                time.sleep(0.5)
         yield
     finally:
         os.close(fd)  # releases the lock

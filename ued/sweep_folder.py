@@ -18,10 +18,8 @@ newest checkpoint is its last update.
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import json
 import time
-from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -143,30 +141,6 @@ class SweepFolder:
     def write_record(self, trial: str, record: TrialRecord) -> None:
         record.updated = time.time()
         atomic_write_text(self.record_path(trial), json.dumps(asdict(record)) + "\n")
-
-    @contextlib.contextmanager
-    def trial_lock(self, trial: str, timeout_s: float = 600.0) -> Iterator[None]:
-        """Hold the trial's lock while it trains: a session of a killed sweep whose trial
-        process is still winding down holds it until that process ends (the kernel drops a
-        dead process's lock), so two sessions never write one run folder."""
-        path = self.path / TRIALS_DIR / f"{trial}.lock"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with open(path, "a") as handle:
-            deadline = time.monotonic() + timeout_s
-            while True:
-                try:
-                    fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                    break
-                except BlockingIOError:
-                    if time.monotonic() > deadline:
-                        raise ConfigError(f"trial {trial}: another process has been training "
-                                          f"it for {timeout_s:.0f} s ({path} is locked)"
-                                          ) from None
-                    time.sleep(0.5)
-            try:
-                yield
-            finally:
-                fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 __all__ = ["RUNS_DIR", "SPEC_COPY", "STATES", "SWEEP_FILE", "TRIALS_DIR", "TUNE_DIR",

@@ -245,8 +245,12 @@ def run_sweep(spec: SweepSpec, folder: str | Path | None = None, *, resume: bool
     finally:
         if started:
             ray.shutdown()
+    seen = set()
     for result in results:
+        if result.config is None:  # Ctrl-C before Tune started it: no config, no record
+            continue
         name = result.config["trial"]
+        seen.add(name)
         record = sweep.record(name)
         if result.error is not None:
             outcome.failed[name] = record.error or _result_error(result)
@@ -256,6 +260,7 @@ def run_sweep(spec: SweepSpec, folder: str | Path | None = None, *, resume: bool
             outcome.finished.append(name)
         else:  # Ctrl-C: Tune ends the session with the trials where they are
             outcome.stopped.append(name)
+    outcome.stopped += [t.name for t in pending if t.name not in seen]
     table.draw(force=True)
     for name, error in outcome.failed.items():
         out.write(f"trial {name} failed: {error} (log: {sweep.log_path(name)})\n")

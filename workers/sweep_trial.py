@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 REPORT_EVERY_S = 2.0
+LOCK_WAIT_S = 600.0  # how long a trial waits for another process to let go of its run folder
 
 
 def final_eval_rates(run_dir: Path) -> dict[str, float]:
@@ -44,14 +45,18 @@ def run_trial(params: dict[str, Any], *, sweep_dir: str, configs: dict[str, str]
 
     from tabx.errors import UserError
     from ued.config import config_from_dict
-    from ued.run_folder import CONFIG_FILE
+    from ued.run_folder import CONFIG_FILE, lock_run_dir
     from ued.sweep_folder import SweepFolder
     from ued.yaml_reader import read_yaml
 
     name = params["trial"]
     folder = SweepFolder(sweep_dir)
     run_dir = folder.run_dir(name)
-    with folder.trial_lock(name):
+    run_dir.mkdir(parents=True, exist_ok=True)
+    # The run folder's own lock (the one `tabx train` holds), taken before the record is
+    # touched: a trial process of a killed sweep still winding down ends before this one goes
+    # on, and `train` below (told so) does not lock it again.
+    with lock_run_dir(run_dir, wait_s=LOCK_WAIT_S):
         record = folder.record(name)
         record.sessions += 1
         record.state, record.error = "running", ""
@@ -104,7 +109,7 @@ def run_trial(params: dict[str, Any], *, sweep_dir: str, configs: dict[str, str]
                 from workers.train import train
 
                 train(config, run_dir=run_dir, resume=resume, progress=True, stream=log,
-                      callback=progress)
+                      callback=progress, locked=True)
             except UserError as err:
                 text = str(err).strip().splitlines()[0] if str(err).strip() else repr(err)
                 log.write(f"error: {text}\n")
@@ -124,4 +129,4 @@ def run_trial(params: dict[str, Any], *, sweep_dir: str, configs: dict[str, str]
                      "seconds": record.seconds, "failed": 0, **final})
 
 
-__all__ = ["REPORT_EVERY_S", "final_eval_rates", "run_trial"]
+__all__ = ["LOCK_WAIT_S", "REPORT_EVERY_S", "final_eval_rates", "run_trial"]

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+from contextlib import nullcontext
 from pathlib import Path
 from typing import TextIO
 
@@ -60,9 +61,11 @@ def driver_for(config: TrainConfig) -> Driver:
 def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = None,
           resume: bool = False, max_updates: int | None = None, progress: bool = True,
           stream: TextIO | None = None, callback: Callback | None = None,
-          driver: Driver | None = None, ray: RaySection | None = None) -> Path:
+          driver: Driver | None = None, ray: RaySection | None = None,
+          locked: bool = False) -> Path:
     """Train; returns the run folder. `driver` overrides the one the config asks for; `ray`
-    replaces a resumed run's `ray:` section."""
+    replaces a resumed run's `ray:` section; `locked`: the caller holds `run_dir`'s lock
+    (`lock_run_dir`) already, as a sweep's trial does."""
     if resume:
         if run_dir is None:
             raise ConfigError("resume needs the run folder")
@@ -77,7 +80,8 @@ def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = Non
     driver = driver if driver is not None else driver_for(config)
     if resume:
         assert run_dir is not None
-        with lock_run_dir(run_dir):  # one writer: a second --resume of it is refused
+        # One writer: a second --resume of it is refused.
+        with nullcontext() if locked else lock_run_dir(run_dir):
             check_writable(run_dir, config)
             with open_checkpoints(run_dir, config) as checkpoints:
                 changed = config_change(run_dir, config, checkpoints)
@@ -93,7 +97,7 @@ def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = Non
                           stream, callback)
     _check_start(driver, config)
     run_dir = create_run_dir(config, run_dir)
-    with lock_run_dir(run_dir):
+    with nullcontext() if locked else lock_run_dir(run_dir):
         return _start(driver, config, run_dir, resume, max_updates, progress, stream, callback)
 
 
