@@ -59,6 +59,19 @@ os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 
 
+@pytest.fixture(scope="module")
+def local_ray():
+    """A Ray of the module's own, three logical CPUs on any machine (a learner and two
+    Explorers each reserve one); "local": never a `ray start` cluster whose address another
+    test left in /tmp/ray. The Ray test modules use it for all their tests."""
+    import ray
+
+    ray.init(address="local", num_cpus=3, include_dashboard=False,
+             object_store_memory=128 * 2**20, logging_level="ERROR")
+    yield ray
+    ray.shutdown()
+
+
 @pytest.fixture
 def optimizing_compiler(monkeypatch):
     """For a test that runs its learner for many updates: its learner programs are compiled

@@ -26,14 +26,8 @@ from ued.run_folder import LEVELS_DIR  # noqa: E402
 from workers.ray_driver import RAY_RECORD  # noqa: E402
 from workers.train import train  # noqa: E402
 
-
-@pytest.fixture(scope="module", autouse=True)
-def local_ray():
-    # As tests/test_ray_driver.py's: three logical CPUs, a Ray of our own ("local").
-    ray.init(address="local", num_cpus=3, include_dashboard=False, object_store_memory=128 * 2**20,
-             logging_level="ERROR")
-    yield
-    ray.shutdown()
+# Every test here runs on the module's local Ray (tests/conftest.py).
+pytestmark = pytest.mark.usefixtures("local_ray")
 
 
 def test_asynchronous_mode_bounds_staleness_and_commits_every_batch_once(tmp_path):

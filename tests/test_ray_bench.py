@@ -15,14 +15,8 @@ import pytest  # noqa: E402
 import ray  # noqa: E402
 from test_ued_train import ued_config  # noqa: E402
 
-
-@pytest.fixture(scope="module", autouse=True)
-def local_ray():
-    # As tests/test_ray_driver.py's: three logical CPUs, a Ray of our own ("local").
-    ray.init(address="local", num_cpus=3, include_dashboard=False, object_store_memory=128 * 2**20,
-             logging_level="ERROR")
-    yield
-    ray.shutdown()
+# Every test here runs on the module's local Ray (tests/conftest.py).
+pytestmark = pytest.mark.usefixtures("local_ray")
 
 
 def test_ued_bench_measures_the_same_work_on_both_drivers():

@@ -39,14 +39,8 @@ from workers.ued_step import UEDRun  # noqa: E402
 STEPS = 6
 
 
-@pytest.fixture(scope="module", autouse=True)
-def local_ray():
-    # Three logical CPUs (on two cores): a learner and two Explorers each reserve one. "local":
-    # a Ray of our own even where a `ray start` cluster left its address in /tmp/ray.
-    ray.init(address="local", num_cpus=3, include_dashboard=False, object_store_memory=128 * 2**20,
-             logging_level="ERROR")
-    yield
-    ray.shutdown()
+# Every test here runs on the module's local Ray (tests/conftest.py).
+pytestmark = pytest.mark.usefixtures("local_ray")
 
 
 # The deterministic ACCEL tests compare their Ray runs with this one local run (7 steps,

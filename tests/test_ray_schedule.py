@@ -63,22 +63,22 @@ class SlowRay:
         return refs[:num_returns], refs[num_returns:]
 
 
-def run_async(max_policy_lag: int, steps: int = 14, method: str = "robust_plr",
-              buffer_size: int = 32):
-    config = ued_config(method, **{
-        "ray.enabled": "true", "ray.explorers": 1, "ray.max_inflight": 2,
-        "ray.max_policy_lag": max_policy_lag, "ued.replay_prob": 0.5,
-        "ued.buffer_size": buffer_size, "ued.min_fill_ratio": 0.25})
-    ray = SlowRay()
-    learner_actor, explorer_actor = LearnerActor(config), ExplorerActor(config)
-    explorer_actor.cache.fetch = ray.get
+def run_schedule(schedule_class: type, config: Any, ray: SlowRay, steps: int):
+    """`steps` steps of `schedule_class` over in-process actors (one learner, the config's
+    Explorers sharing its programs, the level service), then drained: (schedule, branches,
+    the level service)."""
+    learner_actor = LearnerActor(config)
+    explorer_actors = [ExplorerActor(config, learner_actor.learner)
+                       for _ in range(config.ray.explorers)]
+    for actor in explorer_actors:
+        actor.cache.fetch = ray.get
     workers = Workers(Actor(LevelServiceActor(config)), Actor(learner_actor),
-                      [Actor(explorer_actor)], None, 0.0)
+                      [Actor(a) for a in explorer_actors], None, 0.0)
     learner_actor.init(jax.random.key(0))
     service = RemoteService(ray, workers.service, ActorDeaths(None))
     run = UEDRun(config, service, ExplorerPool(ray, workers.scorers()), [])
-    schedule = AsyncRun(ray, config, run, RemoteLearner(ray, workers.learner), workers,
-                        service=service)
+    schedule = schedule_class(ray, config, run, RemoteLearner(ray, workers.learner), workers,
+                              service=service)
     key = jax.random.key(config.seed)
     branches = []
     for step in range(steps):
@@ -87,6 +87,15 @@ def run_async(max_policy_lag: int, steps: int = 14, method: str = "robust_plr",
         assert all(n <= config.ray.max_inflight for n in schedule.inflight)
     schedule.drain()
     return schedule, branches, workers.service._obj
+
+
+def run_async(max_policy_lag: int, steps: int = 14, method: str = "robust_plr",
+              buffer_size: int = 32):
+    config = ued_config(method, **{
+        "ray.enabled": "true", "ray.explorers": 1, "ray.max_inflight": 2,
+        "ray.max_policy_lag": max_policy_lag, "ued.replay_prob": 0.5,
+        "ued.buffer_size": buffer_size, "ued.min_fill_ratio": 0.25})
+    return run_schedule(AsyncRun, config, SlowRay(), steps)
 
 
 @pytest.mark.parametrize("max_policy_lag", [0, 100])
@@ -158,25 +167,7 @@ def run_continuous(method: str, ray: SlowRay, steps: int = 6, max_policy_lag: in
         "ray.enabled": "true", "ray.explorers": 2, "ray.max_inflight": 2,
         "ray.schedule": "continuous", "ray.max_policy_lag": max_policy_lag,
         "ued.buffer_size": 32, "ued.min_fill_ratio": 0.25})
-    learner_actor = LearnerActor(config)
-    explorer_actors = [ExplorerActor(config, learner_actor.learner) for _ in range(2)]
-    for actor in explorer_actors:
-        actor.cache.fetch = ray.get
-    workers = Workers(Actor(LevelServiceActor(config)), Actor(learner_actor),
-                      [Actor(a) for a in explorer_actors], None, 0.0)
-    learner_actor.init(jax.random.key(0))
-    service = RemoteService(ray, workers.service, ActorDeaths(None))
-    run = UEDRun(config, service, ExplorerPool(ray, workers.scorers()), [])
-    schedule = ContinuousRun(ray, config, run, RemoteLearner(ray, workers.learner), workers,
-                             service=service)
-    key = jax.random.key(config.seed)
-    branches = []
-    for step in range(steps):
-        key, k_step = jax.random.split(key)
-        branches.append(schedule.step(step, k_step)[0])
-        assert all(n <= config.ray.max_inflight for n in schedule.inflight)
-    schedule.drain()
-    return schedule, branches, workers.service._obj
+    return run_schedule(ContinuousRun, config, ray, steps)
 
 
 @pytest.mark.parametrize(("method", "ray"), [("robust_plr", SlowRay()),
