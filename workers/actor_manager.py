@@ -130,6 +130,13 @@ class Call:
         return cls(actor, method, lambda: args, then=then, kwargs=kwargs)
 
 
+def names_actor(err: BaseException, actor_id: str) -> bool:
+    """Whether Ray's error `err` is about the actor with this id (hex): its `actor_id` where
+    Ray sets one, else the id in its message."""
+    named = getattr(err, "actor_id", None)
+    return named == actor_id if named is not None else actor_id in str(err)
+
+
 class ActorManager:
     """Calls to the actors of one run (module doc). Members are added by the clients that call
     them; the first `add` of a name decides whether it restarts."""
@@ -208,11 +215,9 @@ class ActorManager:
 
     def culprit(self, err: BaseException, call: Call) -> Member:
         """The member `err` is about: the one it names, else the one `call` went to."""
-        actor_id = getattr(err, "actor_id", None)
-        text = str(err) if actor_id is None else ""
         for member in self.members.values():
             mine = member.actor_id()
-            if mine is not None and (actor_id == mine or (actor_id is None and mine in text)):
+            if mine is not None and names_actor(err, mine):
                 return member
         return self.members[call.actor]
 

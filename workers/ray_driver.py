@@ -50,7 +50,7 @@ from tabx.files import atomic_write_json
 from ued.config import ConfigError, TrainConfig
 from ued.curricula import Branch
 from ued.run_folder import LEVELS_DIR
-from workers.actor_manager import ActorDeaths, ActorManager, Call, death_cause, is_lost
+from workers.actor_manager import ActorDeaths, ActorManager, Call, death_cause, is_lost, names_actor
 from workers.driver import Callback, Driver, RunStopped
 from workers.learner_group import LearnerGroup, Restarts
 from workers.ray_async import AsyncRun
@@ -92,9 +92,7 @@ def lost_learner(ray: Any, err: BaseException, workers: Workers | None) -> bool:
         return False  # lost before the learner was there: nothing says it was the learner
     learner = workers.learner
     members = learner.members if isinstance(learner, LearnerGroup) else [learner]
-    ids = [member._actor_id.hex() for member in members]
-    actor_id = getattr(err, "actor_id", None)  # else named in the message (as ActorManager reads)
-    return actor_id in ids if actor_id is not None else any(i in str(err) for i in ids)
+    return any(names_actor(err, member._actor_id.hex()) for member in members)
 
 
 def stop_reason(ray: Any, err: BaseException) -> str | None:
