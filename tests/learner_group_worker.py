@@ -88,7 +88,11 @@ def main(argv: list[str]) -> None:
         sum_until_the_group_breaks(int(process_id))
     import numpy as np
 
-    np.savez(path, **group_updates(algorithm, 1, int(updates), int(minibatches)))
+    out = group_updates(algorithm, 1, int(updates), int(minibatches))
+    # What `join` did to gloo's event loop thread (`calm_gloo_loop`), for the test to check.
+    loops = distributed.gloo_loop_threads()
+    out["gloo_loop_niceness"] = np.asarray([os.getpriority(os.PRIO_PROCESS, t) for t in loops])
+    np.savez(path, **out)
     distributed.leave()
 
 

@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 from learner_group_worker import group_updates
 
+from ued.learners import distributed
 from ued.learners.distributed import free_address
 
 WORKER = Path(__file__).with_name("learner_group_worker.py")
@@ -74,6 +75,8 @@ def test_two_processes_update_as_one_process_with_two_devices(tmp_path, algorith
         group_updates(algorithm, 2, updates, minibatches)))
     assert reference["metrics/episode/count"] > 0
     for member in members:
+        # gloo's event loop, found and given the lowest priority by `join`
+        assert member.pop("gloo_loop_niceness").tolist() == [distributed.GLOO_LOOP_NICENESS]
         assert_same(reference, member)
 
 

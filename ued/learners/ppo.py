@@ -185,13 +185,28 @@ def value_loss(values: jax.Array, old_values: jax.Array, targets: jax.Array,
     return 0.5 * masked_mean(loss, valid, count)
 
 
+def moments(x: jax.Array, valid: jax.Array, axis_name: str | None = None
+            ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """(count, mean, variance) of the valid entries of `x` (over all shards of `axis_name`);
+    the count as `valid_count` gives it. On shards, one all-reduce carries the count and both
+    moments: between processes every all-reduce is a round trip that waits for the slowest
+    member, and this one comes before each gradient step's own."""
+    valid = jnp.broadcast_to(valid, x.shape)
+    if axis_name is None:
+        count = valid_count(valid)
+        mean = masked_mean(x, valid, count)
+        return count, mean, masked_mean(jnp.square(x - mean), valid, count)
+    w = valid.astype(x.dtype)
+    sums = jax.lax.psum(jnp.stack([jnp.sum(w), jnp.sum(w * x), jnp.sum(w * jnp.square(x))]),
+                        axis_name)
+    count = jnp.maximum(sums[0], 1.0)
+    mean = sums[1] / count
+    return count, mean, jnp.maximum(sums[2] / count - jnp.square(mean), 0.0)
+
+
 def normalise(x: jax.Array, valid: jax.Array, axis_name: str | None = None) -> jax.Array:
     """(x - mean) / (std + 1e-8) over the valid entries (of all shards of `axis_name`)."""
-    valid = jnp.broadcast_to(valid, x.shape)
-    count = valid_count(valid, axis_name)
-    total = lambda y: y if axis_name is None else jax.lax.psum(y, axis_name)
-    mean = total(masked_mean(x, valid, count))
-    var = total(masked_mean(jnp.square(x - mean), valid, count))
+    _, mean, var = moments(x, valid, axis_name)
     return (x - mean) / (jnp.sqrt(var) + 1e-8)
 
 
@@ -308,7 +323,9 @@ class PPOLearner:
             value_valid, value_count = valid, count
         else:  # one value per env (MAPPO): every step of the env
             value_valid = jnp.ones(values.shape, bool)
-            value_count = valid_count(value_valid, axis_name)
+            # Known without counting: the shards' sizes (psum of a constant is the axis size).
+            shards = 1 if axis_name is None else jax.lax.psum(1, axis_name)
+            value_count = jnp.asarray(values.size * shards, jnp.int32)
         v_loss = value_loss(values, batch["value"], batch["targets"], value_valid,
                             ppo.clip_eps, ppo.clip_value, value_count)
         return v_loss, {"loss/value": v_loss}
@@ -478,13 +495,15 @@ class PPOLearner:
         logits, values = self.evaluate_sequence(
             params, self.agent_inputs(batch["obs"]), batch["world"], batch["starts"])
         valid = batch["alive"]
-        count = valid_count(valid, axis_name)
         logp, entropy = policy_terms(logits, batch["mask"], batch["action"])
         adv = batch["adv"]
         if adv.ndim < valid.ndim:  # one advantage per env (MAPPO): every agent of the env
             adv = jnp.broadcast_to(adv[..., None], valid.shape)
-        if ppo.normalize_advantages:
-            adv = normalise(adv, valid, axis_name)
+        if ppo.normalize_advantages:  # the valid count comes with the moments
+            count, mean, var = moments(adv, valid, axis_name)
+            adv = (adv - mean) / (jnp.sqrt(var) + 1e-8)
+        else:
+            count = valid_count(valid, axis_name)
         pg_loss, approx_kl, clip_frac = ppo_policy_loss(logp, batch["logp"], adv, valid,
                                                         ppo.clip_eps, count)
         v_loss, v_metrics = self.critic_loss(values, batch, valid, count, axis_name)
