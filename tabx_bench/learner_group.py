@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 REPEATS = 20
-SMALL_PER_STEP = 4  # valid count, advantage mean and variance, value count (ppo.py `_loss`)
+SMALL_PER_STEP = 1  # the valid count and advantage moments, in one (ppo.py `moments`)
 MEMBER_TIMEOUT_S = 1800
 
 
