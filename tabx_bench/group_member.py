@@ -1,7 +1,9 @@
 """One member process of `tabx bench train --learners N` (`tabx_bench.learner_group.run_group`
 starts N of them):
 
-    python -m tabx_bench.group_member HOST:PORT N INDEX OPTIONS_JSON OUT_JSON
+    python -m tabx_bench.group_member HOST:PORT N INDEX SHARE_CORES OPTIONS_JSON OUT_JSON
+
+SHARE_CORES: 1 pins the member to its share of the machine's cores (`share_cores`), 0 not.
 """
 
 from __future__ import annotations
@@ -13,15 +15,15 @@ from pathlib import Path
 from typing import Any
 
 
-def member(address: str, learners: int, index: int, options: dict[str, Any],
-           out: str) -> None:
-    """Member INDEX of a group of N: its own share of the cores where TABX_SHARE_CORES=1
-    (`share_cores`), the `tabx` command's XLA settings (its share of the cores as
-    devices, set by `run_group`), then the group and the benchmark."""
+def member(address: str, learners: int, index: int, sharing_cores: bool,
+           options: dict[str, Any], out: str) -> None:
+    """Member INDEX of a group of N: its own share of the cores where asked (`share_cores`),
+    the `tabx` command's XLA settings (its share of the cores as devices, set by `run_group`),
+    then the group and the benchmark."""
 
     from ued.learners import distributed
 
-    if distributed.sharing_cores():
+    if sharing_cores:
         distributed.share_cores(index, learners)
     from tabx import xla_flags
 
@@ -37,5 +39,5 @@ def member(address: str, learners: int, index: int, options: dict[str, Any],
 
 
 if __name__ == "__main__":
-    _address, _learners, _index, _options, _out = sys.argv[1:]
-    member(_address, int(_learners), int(_index), json.loads(_options), _out)
+    _address, _learners, _index, _share, _options, _out = sys.argv[1:]
+    member(_address, int(_learners), int(_index), _share == "1", json.loads(_options), _out)

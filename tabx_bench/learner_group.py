@@ -78,9 +78,10 @@ def param_bytes(params: Any) -> int:
     return int(sum(np.asarray(x).nbytes for x in jax.tree.leaves(params)))
 
 
-def run_group(learners: int, options: dict[str, Any]) -> dict[str, Any]:
-    """`run_train_bench(**options)` in a group of `learners` member processes on this machine:
-    member 0's result (a dict)."""
+def run_group(learners: int, options: dict[str, Any], share_cores: bool = False
+              ) -> dict[str, Any]:
+    """`run_train_bench(**options)` in a group of `learners` member processes on this machine,
+    each pinned to its share of the cores with `share_cores`: member 0's result (a dict)."""
     from tabx import xla_flags
     from ued.learners.distributed import free_address
 
@@ -94,7 +95,8 @@ def run_group(learners: int, options: dict[str, Any]) -> dict[str, Any]:
              if "xla_force_host_platform_device_count" not in f]
             + [f"--xla_force_host_platform_device_count={per}"])}
         procs = [subprocess.Popen([sys.executable, "-m", "tabx_bench.group_member", address,
-                                   str(learners), str(i), json.dumps(options), str(out)],
+                                   str(learners), str(i), str(int(share_cores)),
+                                   json.dumps(options), str(out)],
                                   env=env) for i in range(learners)]
         try:
             for p in procs:

@@ -190,7 +190,7 @@ def bench_train(args: argparse.Namespace) -> int:
             else:
                 from tabx_bench.learner_group import run_group
 
-                r = TrainBenchResult(**run_group(learners, options))
+                r = TrainBenchResult(**run_group(learners, options, args.share_cores))
             results.append(r)
             print(f"{algorithm:>9} {r.first_update_s:>14.1f} {r.update_s:>9.2f} "
                   f"{r.steps_per_s:>10,.0f} {r.devices:>7} {r.matmul_dtype:>8} "
@@ -246,6 +246,9 @@ def add_train_bench(which: argparse._SubParsersAction) -> None:
     p.add_argument("--learners", type=int_list(1), default=[1],
                    help="comma-separated learner-group sizes: 1 runs here, N > 1 in N "
                         "processes of this machine sharing its cores (default 1)")
+    p.add_argument("--share-cores", action="store_true",
+                   help="pin each member of a group to its share of the cores (as "
+                        "ray.learner_share_cores does; default: members share every core)")
     p.add_argument("--json", help="also write results as JSON lines to this file")
     p.set_defaults(func=bench_train)
 

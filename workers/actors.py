@@ -176,14 +176,14 @@ class LearnerActor(ExplorerActor):
     (`ray.explorers: 0`), with its own parameters. With `group` (coordinator HOST:PORT,
     members, this member's index, its rank among the members on its node, their count) it is
     one member of a learner group (workers/learner_group.py): it takes its share of its node's
-    cores (TABX_SHARE_CORES=1) and joins JAX's multi-process runtime before JAX starts."""
+    cores (`ray.learner_share_cores`) and joins JAX's multi-process runtime before JAX starts."""
 
     def __init__(self, config: TrainConfig,
                  group: tuple[str, int, int, int, int] | None = None):
         if group is not None:
             from ued.learners import distributed
 
-            if distributed.sharing_cores():
+            if config.ray.learner_share_cores:
                 distributed.share_cores(*group[3:])
             distributed.join(*group[:3])
         super().__init__(config)

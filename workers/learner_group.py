@@ -149,8 +149,8 @@ def start_group(ray: Any, count: int, gpus: float,
                           f"add nodes with {resource}, or ask for less (ray.learners, "
                           f"ray.learner_gpus)")
     coordinator = coordinator_address(ray, group)
-    # Members on one node may split its cores (`distributed.share_cores`, TABX_SHARE_CORES=1):
-    # their XLA thread pools and gloo threads would otherwise contend for the same cores.
+    # Members on one node may split its cores (`ray.learner_share_cores`: each pins itself to
+    # its share, `distributed.share_cores`), so they need their rank among the node's members.
     where = ray.util.placement_group_table(group).get("bundles_to_node_id", {})
     nodes = [where.get(i, where.get(str(i), i)) for i in range(count)]
     members = [spawn(i, (coordinator, count, i, nodes[:i].count(node), nodes.count(node)),

@@ -63,13 +63,6 @@ def join(coordinator: str, num_processes: int, process_id: int, *,
     calm_gloo_loop()
 
 
-def sharing_cores() -> bool:
-    """Whether members on one machine pin themselves to their share of its cores
-    (TABX_SHARE_CORES=1). Off by default: on a machine shared with other work a pinned member
-    cannot move off a busy core (docs/benchmarks_distributed.md, "Learner groups")."""
-    return os.environ.get("TABX_SHARE_CORES", "0") == "1"
-
-
 def share_cores(rank: int, count: int) -> list[int]:
     """Pin this process to its share of the CPUs it may run on: the `rank`-th of `count` equal
     slices, for `count` members of a group on one machine (a remainder stays unused). Call
@@ -198,4 +191,4 @@ def to_local(tree: Any, mesh: jax.sharding.Mesh, device: jax.Device) -> Any:
 
 __all__ = ["GLOO_LOOP_NICENESS", "HEARTBEAT_TIMEOUT_S", "JOIN_TIMEOUT_S", "calm_gloo_loop",
            "free_address", "gloo_loop_threads", "group_devices", "join", "leave", "share_cores",
-           "sharing_cores", "spans_processes", "to_global", "to_local"]
+           "spans_processes", "to_global", "to_local"]
