@@ -94,7 +94,7 @@ class ContinuousRun(AsyncRun):
         super().__init__(ray, config, run, learner, workers, service, start)
         curriculum = run.curriculum
         # Robust PLR and ACCEL score new levels without training on them: those scores run
-        # without pause. Curricula that train on every batch keep the sequential steps.
+        # without pause. DR and PLR, which train on every batch, keep the sequential steps.
         self.scores_apart = any(not curriculum.learns(b) for b in curriculum.branches)
         # SFL: Explorers score learnability batches without pause; the learner trains on SFL
         # batches drawn from the learnable set as it stands.
