@@ -247,6 +247,11 @@ class ContinuousRun(AsyncRun):
         finally:
             self.paused = False
 
+    def background_steps(self) -> int:
+        """Env steps of the Explorer batches committed this session: every one was scored
+        beside the learner's steps."""
+        return self.stats.explored_steps
+
     def record(self) -> dict[str, Any]:
         return {**super().record(), "schedule": "continuous",
                 "explorer_batches": dict(Counter(self.batches.values())),
