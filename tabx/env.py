@@ -28,7 +28,7 @@ from tabx.geometry import facing, field_of_view, in_ellipses, pairwise_offsets, 
 from tabx.observe import action_mask, cooldown_ready, observe, pick_legal, world_state
 from tabx.params import EnvConfig, EnvParams
 from tabx.physics import integrate, resolve_collisions, wall_contact
-from tabx.profiles import CORPSE_DRIFT, CORPSE_VISION, reference_choice
+from tabx.profiles import CORPSE_DRIFT, CORPSE_VISION, OBSERVED_COOLDOWN, reference_choice
 from tabx.reward import dense_reward, team_hp_ratio, winner_mask
 from tabx.rng import random_words, to_unit_float
 from tabx.selection import materialise
@@ -136,7 +136,7 @@ class TabxEnv:
             alive=alive,
             # Seconds since the last attack as the first action sees it (the reference starts
             # at 0 and adds dt before acting): an archer (cooldown 8, dt 0.5) shoots at step 16.
-            cooldown=jnp.clip(jnp.broadcast_to(ph.dt, (n,)), 0.0, u.cooldown),
+            cooldown=jnp.clip(jnp.broadcast_to(ph.dt, (n,)), 0.0, cooldown_cap(params)),
             speed=swamp_speed(inside, z.zone_type, z.effect, u.speed),
             visible=jnp.zeros((n, n), bool),
             attackable=jnp.zeros((n, n), bool),
@@ -187,7 +187,8 @@ class TabxEnv:
         rotated = jnp.stack([fx * cos_t - fy * sin_t, fy * cos_t + fx * sin_t], -1)
         facing_vec = rotated * jax.lax.rsqrt(jnp.sum(rotated * rotated, -1, keepdims=True))
         # A whiffed attack still spends the cooldown (reference behaviour).
-        cooldown = jnp.clip(jnp.where(attacking, 0.0, state.cooldown) + dt, 0.0, u.cooldown)
+        cooldown = jnp.clip(jnp.where(attacking, 0.0, state.cooldown) + dt, 0.0,
+                            cooldown_cap(params))
 
         # 3. Zones at the new positions.
         inside = in_ellipses(position, z.centre, z.semi_axes, z.zone_type)
@@ -263,6 +264,17 @@ class TabxEnv:
         target, has_target = nearest_targets(rel, attackable)
         return state.replace(visible=visible, attackable=attackable, target=target,
                              has_target=has_target)
+
+
+def cooldown_cap(params: EnvParams) -> jax.Array:
+    """(N,) the most `EnvState.cooldown` holds: the attack cooldown, or one dt more where the
+    level plays the reference's OBSERVED_COOLDOWN. The reference caps its clock at the cooldown
+    before adding the step's dt, and its scripted units read the value a step old, so they must
+    tell "ready since the last step" from "ready now" (tabx.heuristic). Readiness and the
+    observation read the clock capped at the cooldown either way."""
+    u = params.units
+    return u.cooldown + jnp.where(reference_choice(params, OBSERVED_COOLDOWN),
+                                  params.physics.dt, 0.0)
 
 
 def materialise_actions(actions: jax.Array) -> jax.Array:

@@ -28,8 +28,9 @@ target better; the search rotation is stochastic (paper) not always right; kitin
 distance to the threatening unit itself; the epsilon draw and the random action use independent
 randomness and the random action is any legal one; memory is forgotten when the spot is reached
 within one move, or a corpse lies there; "in a bush" is the bush's ellipse; the assassin role
-reads the unit's base speed. The level's profile (`tabx.profiles`) restores the reference's
-choice for each of these, one select each.
+reads the unit's base speed; a unit attacks on the first step its attack is ready (the
+reference's reads its cooldown from its observation, a step old). The level's profile
+(`tabx.profiles`) restores the reference's choice for each of these, one select each.
 """
 
 from __future__ import annotations
@@ -143,8 +144,11 @@ def heuristic_actions_from_bits(bits: jax.Array, state: EnvState, params: EnvPar
     target_move, target_rel = picked[:, 0:2], picked[:, 2:4]
     target_radius, target_attackable = picked[:, 4], picked[:, 5] > 0.5
 
-    # 3a. Attack: a candidate is attackable now and the cooldown is ready.
-    ready = cooldown_ready(state.cooldown, u.cooldown)
+    # 3a. Attack: a candidate is attackable now and the cooldown is ready. The reference's unit
+    # reads its cooldown from its observation, a step old: it attacks one step after the attack
+    # is ready (a king, cooldown 2.5 s at dt 0.5, every 6 steps instead of 5).
+    late = jnp.where(reference(profiles.OBSERVED_COOLDOWN), params.physics.dt, 0.0)
+    ready = cooldown_ready(state.cooldown - late, u.cooldown)
     attack = jnp.any(candidates & state.attackable, -1) & ready
 
     # 3b. Turn to engage: would the turns that face the target bring it into the hurtbox?
@@ -188,8 +192,8 @@ def heuristic_actions_from_bits(bits: jax.Array, state: EnvState, params: EnvPar
 
     # 3d-e. Pursue the remembered spot: face it, then move to it. The memory is forgotten once
     # the unit is within one move of the spot on both axes, or a visible corpse lies on it. The
-    # reference's radius is sqrt(2) dt whatever the speed, and it still pursues on the step the
-    # memory is forgotten.
+    # reference's radius is sqrt(2) dt whatever the speed, and it still pursues on the step it
+    # reaches the spot (a corpse there stops the pursuit at once in both).
     reference_memory = reference(profiles.MEMORY_REACH)
     memory_rel = state.memory_position - position
     step_len = jnp.where(reference_memory, 1.0, u.speed) * params.physics.dt
@@ -197,9 +201,10 @@ def heuristic_actions_from_bits(bits: jax.Array, state: EnvState, params: EnvPar
     corpse = state.visible & (u.active.astype(bool) & ~state.alive)[None, :]
     to_spot = position[None, :, :] - state.memory_position[:, None, :]  # (N, N, 2)
     on_spot = jnp.sum(to_spot**2, -1) <= jnp.square(u.radius)[None, :]
-    forget = reached | jnp.any(corpse & on_spot, -1)
+    corpse_on_spot = jnp.any(corpse & on_spot, -1)
+    forget = reached | corpse_on_spot
     keep_memory = state.memory_valid & ~forget
-    pursuing = jnp.where(reference_memory, state.memory_valid, keep_memory)
+    pursuing = jnp.where(reference_memory, state.memory_valid & ~corpse_on_spot, keep_memory)
     memory_angle = atan2(*_in_frame(memory_rel, state.facing)[::-1])
     pursue = jnp.where(jnp.abs(memory_angle) <= step_angle, _toward(memory_rel),
                        _turn_toward(memory_angle))

@@ -49,6 +49,9 @@ def unit_features(state: EnvState, params: EnvParams) -> jax.Array:
     """(N, 14) own-style features of every unit, absolute positions, not masked."""
     u = params.units
     alive = state.alive.astype(jnp.float32)
+    # The state's clock may run one dt past the cooldown (tabx.env.cooldown_cap); what a unit
+    # observes stops at the cooldown in every profile.
+    cooldown = jnp.minimum(state.cooldown, u.cooldown)
     return jnp.concatenate([
         (state.health / HEALTH_SCALE)[:, None],
         (state.health / jnp.maximum(u.max_health, 1e-6))[:, None],
@@ -56,8 +59,8 @@ def unit_features(state: EnvState, params: EnvParams) -> jax.Array:
         (state.heading / TWO_PI)[:, None],
         (u.attack_range / RANGE_SCALE)[:, None],
         (u.damage / DAMAGE_SCALE)[:, None],
-        (state.cooldown / COOLDOWN_SCALE)[:, None],
-        (state.cooldown / jnp.maximum(u.cooldown, 1e-6))[:, None],
+        (cooldown / COOLDOWN_SCALE)[:, None],
+        (cooldown / jnp.maximum(u.cooldown, 1e-6))[:, None],
         (u.radius / RADIUS_SCALE)[:, None],
         (jnp.log1p(jnp.maximum(u.mass, 0.0)) / MASS_LOG_SCALE)[:, None],
         (u.sight_angle / TWO_PI)[:, None],

@@ -1,11 +1,12 @@
 """Behaviour profiles: the reference implementation's choices, restorable per level.
 
 Where the reference implementation made a defensible choice that we made differently (the
-scripted opponent's random draw, its kiting rule, search direction, memory, a corpse's last
-drift, ...), the level says which behaviour to play: `EnvParams.profile` holds one bit per
-choice, set bit = the reference's behaviour. Fixes of the reference's defects (NaN padding,
-late termination, resurrection, ...) hold in every profile. Being level data, a profile never
-recompiles the step, and a batch may mix profiles; each choice costs the step a select.
+scripted opponent's random draw, its kiting rule, search direction, memory, when it attacks, a
+corpse's last drift, ...), the level says which behaviour to play: `EnvParams.profile` holds
+one bit per choice, set bit = the reference's behaviour. Fixes of the reference's defects (NaN
+padding, late termination, resurrection, ...) hold in every profile. Being level data, a
+profile never recompiles the step, and a batch may mix profiles; each choice costs the step a
+select.
 
 Two named profiles:
 
@@ -38,6 +39,7 @@ BUSH_BOX = 1 << 6  # a ranger is "in the bush" inside the nearest bush's boundin
 ASSASSIN_CURRENT_SPEED = 1 << 7  # the assassin role reads the current (swamp-slowed) speed
 CORPSE_DRIFT = 1 << 8  # a unit that dies keeps the velocity of its last move one more step
 CORPSE_VISION = 1 << 9  # a dead teammate inside a bush still shares what it sees there
+OBSERVED_COOLDOWN = 1 << 10  # the scripted unit attacks a step after its attack is ready
 
 CHOICES: dict[str, int] = {
     "epsilon-moves": EPSILON_MOVES,
@@ -50,6 +52,7 @@ CHOICES: dict[str, int] = {
     "assassin-current-speed": ASSASSIN_CURRENT_SPEED,
     "corpse-drift": CORPSE_DRIFT,
     "corpse-vision": CORPSE_VISION,
+    "observed-cooldown": OBSERVED_COOLDOWN,
 }
 ALL_CHOICES = sum(CHOICES.values())
 
@@ -94,6 +97,6 @@ def reference_choice(params: EnvParams, choice: int) -> jax.Array:
 
 __all__ = ["ALL_CHOICES", "ASSASSIN_CURRENT_SPEED", "BUSH_BOX", "CHOICES", "CORPSE_DRIFT",
            "CORPSE_VISION", "DEFAULT_PROFILE", "EPSILON_MOVES", "KITE_MOVE_POINT",
-           "MEMORY_REACH", "PROFILES", "PROFILE_NAMES", "SEARCH_RIGHT", "TURN_IN_PLACE",
-           "TURN_PREDICTION", "check_profile", "profile_name",
+           "MEMORY_REACH", "OBSERVED_COOLDOWN", "PROFILES", "PROFILE_NAMES", "SEARCH_RIGHT",
+           "TURN_IN_PLACE", "TURN_PREDICTION", "check_profile", "profile_name",
            "reference_choice", "with_profile"]

@@ -23,7 +23,9 @@ class EnvState:
     half_sight: jax.Array  # (N, 2) float32 (cos, sin) of half the sight angle (fixed per episode)
     health: jax.Array  # (N,) float32 in [0, max_health]
     alive: jax.Array  # (N,) bool; False for padding, and forever once dead
-    cooldown: jax.Array  # (N,) float32 seconds since the last attack, as the next action sees it
+    # (N,) float32 seconds since the last attack, as the next action sees it, capped at the
+    # cooldown (one dt later under the reference's observed-cooldown choice: tabx.env.cooldown_cap)
+    cooldown: jax.Array
     speed: jax.Array  # (N,) float32 current speed (swamps slow it), used by the next move
     visible: jax.Array  # (N, N) bool: visible[v, t] = v sees t (field of view + bush rules)
     attackable: jax.Array  # (N, N) bool: attackable[a, t] = a's attack would reach t now

@@ -229,9 +229,12 @@ def _result(stepper: LocalStepper | RayStepper, branches: Counter,
                               trained, explored, learner_busy_fraction=busy,
                               wait_for_levels_s=0.0, branches=counts, step_seconds=step_seconds)
     stats = stepper.schedule.stats
+    # SFL's scoring: on the learner's steps (sequential), or among the Explorers' batches
+    # (continuous, already in `explored_steps`).
+    sfl = 0 if getattr(stepper.schedule, "learnability", False) else stepper.run.sfl_scoring_steps
     return UEDBenchResult(
         stepper.driver, explorers, config.ued.method, steps, seconds, stats.trained_steps,
-        stats.explored_steps + stepper.run.sfl_scoring_steps,
+        stats.explored_steps + sfl,
         learner_busy_fraction=stats.learner_busy_s / seconds,
         wait_for_levels_s=stats.wait_for_levels_s,
         staleness={str(k): v for k, v in sorted(stats.staleness.items())},

@@ -311,3 +311,50 @@ def test_continuous_scoring_commits_every_batch_once_when_an_explorer_and_the_se
     buffer = service_actor.obj.buffer
     assert buffer.stats["insert_attempts"] == 4 * committed  # none lost, none twice
     assert int(Source.MUTATION) in set(buffer.column("source").tolist())  # ACCEL's children
+
+
+def test_continuous_sfl_commits_every_scored_batch_once_when_an_explorer_and_the_service_die(
+        tmp_path):
+    # SFL on the continuous schedule: the Explorer is killed during its third learnability
+    # batch, the service during its second group commit. The commit log holds every scored
+    # batch once (the service restarted from it). (Without deaths, and the learnable set's
+    # contents: tests/test_ray_schedule.py.)
+    from level_buffer.commit_log import read
+    from workers.actors import ExplorerActor, LearnerActor
+    from workers.continuous import ContinuousRun
+    from workers.durable_service import LOG_NAME
+    from workers.ray_handles import ExplorerPool, RemoteLearner
+    from workers.ray_restarts import RemoteService
+    from workers.ray_start import Workers
+    from workers.ued_step import UEDRun
+
+    config = ued_config("sfl", **{"ray.enabled": "true", "ray.explorers": 1,
+                                  "ray.max_inflight": 2, "ray.schedule": "continuous"})
+    ray = FakeRay()
+    learner_actor = LearnerActor(config)
+    explorer_actor = ExplorerActor(config, learner_actor.learner)
+    explorer_actor.cache.fetch = ray.get
+    explorer = MemoryKilled(explorer_actor, "learnability_fresh", {3}, "e0" * 14)
+    service_actor = ServiceKilled(config, str(tmp_path / "levels"), {2})
+    workers = Workers(Handle(service_actor, "5e" * 14), Handle(learner_actor, "1e" * 14),
+                      [Handle(explorer, "e0" * 14)], None, 0.0)
+    learner_actor.init(jax.random.key(0))
+    out = io.StringIO()
+    service = RemoteService(ray, workers.service, ActorDeaths(out))
+    run = UEDRun(config, service, ExplorerPool(ray, workers.scorers()), [])
+    schedule = ContinuousRun(ray, config, run, RemoteLearner(ray, workers.learner), workers,
+                             service)
+    key = jax.random.key(config.seed)
+    for step in range(4):
+        key, k_step = jax.random.split(key)
+        assert schedule.step(step, k_step)[0].name == "SFL"
+    schedule.drain()
+    assert explorer.restarts == 1 and service_actor.restarts == 1, out.getvalue()
+    assert schedule.stats.reissued == 1
+    committed = schedule.stats.committed
+    assert committed >= 4 and schedule.batches == dict.fromkeys(range(schedule.issued),
+                                                                "committed")
+    records = read(tmp_path / "levels" / LOG_NAME.format(0)).records
+    assert [r[1] for r in records] == ["add_learnable"] * committed  # none lost, none twice
+    assert [r[0] for r in records] == list(range(1, committed + 1))
+    assert service_actor.obj.has_learnable()

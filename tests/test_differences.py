@@ -200,6 +200,18 @@ def _corpse_vision() -> Case:
     return Case(lv, check, P.CORPSE_VISION)
 
 
+def _observed_cooldown() -> Case:
+    # A farmer (cooldown 2.5 s, 5 steps at dt 0.5) with an enemy in reach from the start.
+    lv = level([unit("farmer", 0, 0)], [unit("farmer", 2.5, 0, math.pi, health=1e4)],
+               heuristic=greedy())
+
+    def check(ours, ref):
+        # Ours attacks on the first ready step, every 5 steps; the reference one step later.
+        assert list(np.flatnonzero(ours.actions[:, A0] == C.ATTACK)[:3]) == [4, 9, 14]
+        assert list(np.flatnonzero(ref.actions[:, A0] == C.ATTACK)[:3]) == [5, 11, 17]
+    return Case(lv, check, P.OBSERVED_COOLDOWN)
+
+
 def _team_health() -> Case:
     # At the time limit: allies a full king and a farmer at 6/60 (mean of ratios 0.55, ratio
     # of sums 0.87), enemies two farmers at 42/60 (0.7 either way). Far apart, facing away.
@@ -230,6 +242,7 @@ CASES: dict[str, Callable[[], Case]] = {
     "assassin-current-speed": _assassin_current_speed,
     "corpse-drift": _corpse_drift,
     "corpse-vision": _corpse_vision,
+    "observed-cooldown": _observed_cooldown,
     "team-health": _team_health,
 }
 

@@ -19,7 +19,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from tabx import constants as C
-from tabx.env import TabxEnv, random_legal_actions
+from tabx.env import TabxEnv, cooldown_cap, random_legal_actions
 from tabx.params import EnvConfig, heuristic_params, make_level, physics_params
 from tabx.profiles import ALL_CHOICES
 
@@ -226,6 +226,7 @@ def check_rollout(level, out):
     u = jax.tree.map(np.asarray, vars(level.units))
     z = jax.tree.map(np.asarray, vars(level.zones))
     active, max_health, radius = u["active"], u["max_health"], u["radius"]
+    cap = np.asarray(cooldown_cap(level))  # the cooldown, one dt more under observed-cooldown
     half = 0.5 * np.asarray(level.physics.arena_size)
     limit = np.maximum(half[None, :] - radius[:, None], 0.0)
     assert obs0.shape == (N, CONFIG.obs_size) and ws0.shape == (CONFIG.state_size,)
@@ -244,7 +245,7 @@ def check_rollout(level, out):
         # [0, 2 pi) up to rounding (a tiny negative heading wraps to 2 pi in float32).
         assert (s["heading"] >= -1e-6).all() and (s["heading"] <= 2 * math.pi + 1e-6).all()
         assert np.isfinite(s["position"]).all() and np.isfinite(s["velocity"]).all()
-        assert (s["cooldown"] >= 0).all() and (s["cooldown"] <= u["cooldown"] + 1e-6).all()
+        assert (s["cooldown"] >= 0).all() and (s["cooldown"] <= cap + 1e-6).all()
         check_geometry(s, u, z, alive)
         if t > 0:
             prev = states[t - 1]
@@ -296,7 +297,7 @@ def check_rollout(level, out):
         assert not (info["hit"][t] & ~states[t]["alive"]).any()
         attacked = info["attacking"][t]
         np.testing.assert_allclose(states[t + 1]["cooldown"][attacked & active],
-                                   np.minimum(float(level.physics.dt), u["cooldown"])[
+                                   np.minimum(float(level.physics.dt), cap)[
                                        attacked & active], rtol=1e-6)
     # Action masks: IDLE always legal; units that cannot act may only IDLE.
     masks = np.concatenate([traj["mask"], traj["next_mask"][-1:]])

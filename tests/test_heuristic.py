@@ -28,6 +28,7 @@ from tabx.controllers import (
 from tabx.env import TabxEnv
 from tabx.heuristic import heuristic_actions, unit_roles
 from tabx.params import EnvParams, heuristic_params
+from tabx.profiles import PROFILE_NAMES, with_profile
 from tabx.rng import random_words
 
 ENV = TabxEnv(CONFIG)
@@ -163,6 +164,23 @@ def test_lost_target_goes_to_last_seen_position_then_searches():
     assert set(a[:first_search]) <= {C.RIGHT}
     assert abs(float(before.position[first_search, A0, 0]) - 12.0) < 1.2
     assert set(a[first_search:]) <= TURNS
+
+
+def test_a_corpse_on_the_remembered_spot_ends_the_pursuit_at_once():
+    # The remembered spot is where an enemy now lies dead, in view: the unit searches on this
+    # very step in both profiles (the reference forgets a spot it reaches only a step later).
+    params = level([unit("farmer", 0, 0)], [unit("farmer", 8, 0, math.pi), HIDDEN_ENEMY],
+                   [HIDING_BUSH], heuristic=greedy())
+    _, state = ENV.reset(KEY, params)
+    state = state.replace(alive=state.alive.at[E0].set(False),
+                          health=state.health.at[E0].set(0.0),
+                          memory_position=state.memory_position.at[A0].set(jnp.asarray([8.5, 0])),
+                          memory_valid=state.memory_valid.at[A0].set(True))
+    assert bool(state.visible[A0, E0])
+    for profile in PROFILE_NAMES:
+        actions, after = decide(KEY, state, with_profile(params, profile))
+        assert int(actions[A0]) in TURNS, profile
+        assert not bool(after.memory_valid[A0])
 
 
 def test_ranger_with_nothing_in_sight_heads_for_the_nearest_bush():

@@ -44,12 +44,13 @@ def reference_observation(config: EnvConfig, state, params) -> np.ndarray:
     def own(t):
         if not active[t]:
             return np.zeros(14)
+        cooldown = min(s.cooldown[t], u.cooldown[t])  # observed up to the cooldown
         return np.array([
             s.health[t] / O.HEALTH_SCALE, s.health[t] / max(u.max_health[t], 1e-6),
             s.position[t, 0] / half[0], s.position[t, 1] / half[1],
             s.heading[t] / (2 * math.pi), u.attack_range[t] / O.RANGE_SCALE,
-            u.damage[t] / O.DAMAGE_SCALE, s.cooldown[t] / O.COOLDOWN_SCALE,
-            s.cooldown[t] / max(u.cooldown[t], 1e-6), u.radius[t] / O.RADIUS_SCALE,
+            u.damage[t] / O.DAMAGE_SCALE, cooldown / O.COOLDOWN_SCALE,
+            cooldown / max(u.cooldown[t], 1e-6), u.radius[t] / O.RADIUS_SCALE,
             math.log1p(max(u.mass[t], 0.0)) / O.MASS_LOG_SCALE,
             u.sight_angle[t] / (2 * math.pi), float(s.alive[t] > 0), s.speed[t] / O.SPEED_SCALE,
         ])

@@ -125,3 +125,20 @@ def test_compile_seconds_counts_a_real_compilation():
     again = compile_seconds()
     jnp.arange(7.0).block_until_ready()  # no new program
     assert compile_seconds() == again
+
+
+def test_env_steps_explored_beside_the_steps_count_as_explored():
+    """The continuous schedule trains at every step while Explorers score levels beside it:
+    their env steps (`background`) are explored steps/s and part of the sum; the ETA counts
+    the loop's steps only."""
+    t = FakeTime()
+    clock = ThroughputClock(0, 100, seconds=lambda: t.now, compile_seconds=lambda: t.compiling,
+                            min_clean_updates=1)
+    t.run(1.0)
+    clock.read(1, trained=1, background=50)  # the first read: its background is the origin
+    t.run(2.0)
+    timing, rate = clock.read(3, trained=3, background=50 + 600)
+    assert timing["time/trained_steps_per_s"] == 2 * 100 / 2.0
+    assert timing["time/explored_steps_per_s"] == 600 / 2.0
+    assert rate == (2 * 100 + 600) / 2.0
+    assert clock.eta_steps_per_s == 2 * 100 / 2.0

@@ -63,10 +63,11 @@ class SlowRay:
         return refs[:num_returns], refs[num_returns:]
 
 
-def run_schedule(schedule_class: type, config: Any, ray: SlowRay, steps: int):
+def run_schedule(schedule_class: type, config: Any, ray: SlowRay, steps: int,
+                 before_drain: Any = None):
     """`steps` steps of `schedule_class` over in-process actors (one learner, the config's
     Explorers sharing its programs, the level service), then drained: (schedule, branches,
-    the level service)."""
+    the level service). `before_drain(schedule)` runs between the steps and the drain."""
     learner_actor = LearnerActor(config)
     explorer_actors = [ExplorerActor(config, learner_actor.learner)
                        for _ in range(config.ray.explorers)]
@@ -85,6 +86,8 @@ def run_schedule(schedule_class: type, config: Any, ray: SlowRay, steps: int):
         key, k_step = jax.random.split(key)
         branches.append(schedule.step(step, k_step)[0])
         assert all(n <= config.ray.max_inflight for n in schedule.inflight)
+    if before_drain is not None:
+        before_drain(schedule)
     schedule.drain()
     return schedule, branches, workers.service._obj
 
@@ -160,14 +163,15 @@ class PromptRay(SlowRay):
         return refs[:num_returns], refs[num_returns:]
 
 
-def run_continuous(method: str, ray: SlowRay, steps: int = 6, max_policy_lag: int = 1):
+def run_continuous(method: str, ray: SlowRay, steps: int = 6, max_policy_lag: int = 1,
+                   before_drain: Any = None):
     from workers.continuous import ContinuousRun
 
     config = ued_config(method, **{
         "ray.enabled": "true", "ray.explorers": 2, "ray.max_inflight": 2,
         "ray.schedule": "continuous", "ray.max_policy_lag": max_policy_lag,
         "ued.buffer_size": 32, "ued.min_fill_ratio": 0.25})
-    return run_schedule(ContinuousRun, config, ray, steps)
+    return run_schedule(ContinuousRun, config, ray, steps, before_drain)
 
 
 @pytest.mark.parametrize(("method", "ray"), [("robust_plr", SlowRay()),
@@ -198,3 +202,79 @@ def test_continuous_scoring_trains_every_step_and_commits_every_batch_once(metho
 
 def service_unanswered(schedule) -> list:
     return [c for c in schedule.service.unanswered if c not in schedule.service.by_ref]
+
+
+def top_k_of(batches: list, k: int) -> tuple[Any, np.ndarray]:
+    """The `k` most learnable levels of `batches` ([levels, scores], oldest first; ties: the
+    earlier), and their scores: what SFL's learnable set holds (no episode ended: -1)."""
+    levels = jax.tree.map(lambda *xs: np.concatenate(xs), *(b[0] for b in batches))
+    scores = np.concatenate([np.asarray(b[1], np.float64) for b in batches])
+    scores = np.where(np.isfinite(scores), scores, -1.0)
+    order = np.argsort(-scores, kind="stable")[:k]
+    return jax.tree.map(lambda x: np.asarray(x)[order], levels), scores[order]
+
+
+def assert_learnable_is(service: Any, batches: list, config: Any) -> None:
+    ued = config.ued
+    levels, scores = top_k_of(batches[-ued.sfl_num_batches:], ued.sfl_top_k)
+    learnable = service.learnable
+    np.testing.assert_array_equal(learnable.scores, scores)
+    stored = learnable.get(learnable.ids)
+    assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(stored),
+                                                    jax.tree.leaves(levels), strict=True))
+
+
+@pytest.mark.parametrize("ray", [SlowRay(), PromptRay()], ids=["slow", "prompt"])
+def test_continuous_sfl_never_blocks_the_learner_and_keeps_the_top_k_committed(
+        ray, monkeypatch, tmp_path):
+    # SlowRay: Explorer results arrive only when the driver blocks, and an SFL step never
+    # blocks on them: the learner trains on fresh levels only, and the drain commits them
+    # (late: re-scored). PromptRay: results are committed at every step and the learnable set
+    # serves the learner. Either way every scored batch is committed once, and the learnable
+    # set is the top sfl_top_k of the newest sfl_num_batches batches committed.
+    from workers.level_service import LevelService
+
+    committed, served = [], []
+    add, batch = LevelService.add_learnable, LevelService.sfl_batch
+
+    def add_learnable(self, levels, scores):
+        committed.append((levels, np.asarray(scores)))
+        return add(self, levels, scores)
+
+    def sfl_batch(self, key, n):
+        served.append(self.has_learnable())
+        return batch(self, key, n)
+
+    monkeypatch.setattr(LevelService, "add_learnable", add_learnable)
+    monkeypatch.setattr(LevelService, "sfl_batch", sfl_batch)
+    waited: list[float] = []
+    schedule, branches, service = run_continuous(
+        "sfl", ray, before_drain=lambda s: waited.append(s.stats.wait_for_levels_s))
+    config = schedule.config
+    assert branches == [Branch.SFL] * 6 and schedule.learner.version == 6
+    assert waited == [0.0]  # no step waited for an Explorer
+    assert schedule.ledger == dict.fromkeys(range(6), "committed")
+    issued = schedule.issued
+    assert schedule.batches == dict.fromkeys(range(issued), "committed")
+    # Each scored batch applied once, by number: none lost, none twice.
+    assert schedule.stats.committed == issued == len(committed) == service.seq
+    assert not service_unanswered(schedule)
+    scored = config.ued.sfl_batch_size * config.ued.sfl_rollout_steps
+    assert schedule.run.sfl_scoring_steps == schedule.stats.explored_steps == issued * scored
+    assert_learnable_is(service, committed, config)
+    if isinstance(ray, PromptRay):  # the first results were in before the first batch
+        assert issued >= 12 and all(served)
+    else:  # nothing arrived before the drain: every batch trained on fresh levels only
+        assert issued == 4 and not any(served) and schedule.stats.rescored >= 1
+    # Distinct scores: the window holds the newest sfl_num_batches batches, an older batch's
+    # best levels leave with it; the snapshot holds the window.
+    rng = np.random.default_rng(0)
+    for levels, _ in committed[:3]:
+        service.add_learnable(levels, rng.permutation(config.ued.sfl_batch_size) / 100.0)
+    assert_learnable_is(service, committed, config)
+    service.save(tmp_path, 1, {})
+    window = service.sfl_window.scores
+    service.sfl_window = service.learnable = None
+    service.load(tmp_path, 1)
+    np.testing.assert_array_equal(service.sfl_window.scores, window)
+    assert_learnable_is(service, committed, config)

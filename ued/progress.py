@@ -66,7 +66,9 @@ class ThroughputClock:
     rate then splits into trained and explored env steps/s (steps played only to score levels:
     Robust PLR's and ACCEL's new and mutated levels), logged as `time/trained_steps_per_s` and
     `time/explored_steps_per_s`; `time/steps_per_s` stays their sum. Without `trained` every
-    step trained.
+    step trained. Env steps played beside the loop's steps (`background`: the Ray driver's
+    continuous schedule, whose Explorers score levels while the learner trains) count as
+    explored, and in the sum; the ETA counts the loop's steps only.
 
     `eta_steps_per_s` is the rate an ETA should use: env steps per second over the intervals
     between reads (after the first) in which nothing compiled. A run compiles more than its
@@ -95,6 +97,7 @@ class ThroughputClock:
         self.eta_steps_per_s = math.nan
         self._seconds, self._compile_seconds = seconds, compile_seconds
         self._t, self._update, self._trained = seconds(), start_update, None
+        self._background = 0
         self._since: tuple[float, float, int] | None = None  # (time, compile time, update)
         self._compiled_at = 0.0  # the compile-time total at the previous read
         self._clean = [0, 0.0]  # updates and seconds of the compile-free intervals
@@ -104,12 +107,15 @@ class ThroughputClock:
     def first_pending(self) -> bool:
         return self.first_update_s is None
 
-    def read(self, done: int, trained: int | None = None) -> tuple[dict[str, float], float]:
+    def read(self, done: int, trained: int | None = None, background: int = 0
+             ) -> tuple[dict[str, float], float]:
         """(metrics to log, steps/s) at update `done`: {"time/first_update_s": s} and NaN on
         the first read, then the trained (and, given `trained`, explored) steps/s since the
         previous read and their sum. `trained`: how many of the loop's steps so far trained
-        the policy, counted from any fixed origin."""
+        the policy; `background`: env steps explored beside the loop's steps so far; both
+        counted from any fixed origin."""
         now, compiling = self._seconds(), self._compile_seconds()
+        played_beside, self._background = background - self._background, background
         if self.first_update_s is None:
             self.first_update_s = now - self._t
             out, rate = {"time/first_update_s": self.first_update_s}, math.nan
@@ -121,6 +127,7 @@ class ThroughputClock:
                 out = {"time/trained_steps_per_s": rate} if trained is None else {}
             else:
                 trained_rate = (trained - self._trained) * self.steps_per_update / seconds
+                rate += played_beside / seconds
                 out = {"time/trained_steps_per_s": trained_rate,
                        "time/explored_steps_per_s": rate - trained_rate}
             self._intervals += 1

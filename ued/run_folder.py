@@ -51,7 +51,8 @@ LEVELS_DIR = "levels"
 SET_ASIDE_DIR = "set-aside"  # files a resume or a restart moved away, kept for inspection
 SEED_DIR_PREFIX = "seed-"  # RUN_DIR/seed-<s>/: seed s of a multi-seed run
 # The level snapshot of a step, in LEVELS_DIR; each checkpoint records their digests.
-SNAPSHOT_FILES = ("buffer-{}.msgpack", "learnable-{}.msgpack", "state-{}.json")
+SNAPSHOT_FILES = ("buffer-{}.msgpack", "learnable-{}.msgpack", "sfl-window-{}.msgpack",
+                  "state-{}.json")
 
 
 def seed_dir(run_dir: str | Path, seed: int) -> Path:

@@ -143,7 +143,7 @@ class ExplorerActor(ActorBase):
         self.explorer = Explorer(self.learner, config.ued.score)
         self.cache = ParamsCache()
         self.config = config
-        self.generator: LevelGenerator | None = None  # built on the first `score_fresh`
+        self.generator: LevelGenerator | None = None  # built on the first fresh batch
 
     def score_levels(self, params: ParamsRef, levels: EnvParams, key: jax.Array, score: str,
                      max_returns: Any = None, num_steps: int | None = None
@@ -158,12 +158,25 @@ class ExplorerActor(ActorBase):
         function of its key: the same levels the service would make) and score them; the
         levels come back on the host with the scores, for the service to insert. Keeps the
         generator's CPU off the level service (`ray.schedule: continuous`)."""
-        if self.generator is None:
-            self.generator = generator_for(self.config, self.learner)
-        levels = self.generator.sample(levels_key, n)
+        levels = self._fresh(levels_key, n)
         metrics, scores, best = self.explorer.score_levels(
             self.cache.get(params), levels, key, score, None, None)
         return _host_metrics(metrics), scores, best, to_host(levels)
+
+    def learnability_fresh(self, params: ParamsRef, levels_key: jax.Array, n: int,
+                           key: jax.Array, num_steps: int | None = None
+                           ) -> tuple[dict[str, float], np.ndarray, None, EnvParams]:
+        """SFL's batch on the continuous schedule: make `n` fresh levels from `levels_key`
+        (as `score_fresh`) and score them by learnability p (1 - p) over `num_steps` steps:
+        ({}, scores, None, the levels on the host), shaped as `score_fresh`'s answer."""
+        levels = self._fresh(levels_key, n)
+        scores = self.explorer.learnability(self.cache.get(params), levels, key, num_steps)
+        return {}, scores, None, to_host(levels)
+
+    def _fresh(self, levels_key: jax.Array, n: int) -> EnvParams:
+        if self.generator is None:
+            self.generator = generator_for(self.config, self.learner)
+        return self.generator.sample(levels_key, n)
 
     def learnability(self, params: ParamsRef, levels: EnvParams, key: jax.Array,
                      num_steps: int | None = None) -> np.ndarray:

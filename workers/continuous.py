@@ -25,8 +25,35 @@ at every step and the ratio of scored new levels to replayed ones is the Explore
 over the learner's; a replay batch is drawn one update ahead, so it does not see the scores of
 the batch being trained; new levels are scored by a policy up to `ray.max_policy_lag` versions
 old; ACCEL mutates each replay batch as it was drawn (a parent evicted since still has its
-children). Curricula that train on every batch (DR, PLR, SFL) keep the sequential schedule's
-steps: there is nothing to score apart from training.
+children).
+
+SFL, on the same machinery (the same batches in flight, lag check, re-issue and group commit):
+
+    Explorers   each keeps `ray.max_inflight` learnability batches in flight: `ued.sfl_batch_size`
+                fresh levels it makes from the batch's key, each played `ued.sfl_rollout_steps`
+                steps with the newest policy and scored p (1 - p) (`learnability_fresh`)
+    service     each committed batch goes into the window of the newest `ued.sfl_num_batches`
+                committed batches (`LevelService.add_learnable`, numbered, group-committed);
+                the learnable set is then the `ued.sfl_top_k` most learnable levels of the
+                window (ties: the earlier batch, then the earlier level), replaced at every
+                committed batch
+    learner     every step trains on its SFL batch (`LevelService.sfl_batch`, by ref):
+                round(n x `ued.sfl_fresh_fraction`) fresh levels and the rest drawn uniformly
+                from the learnable set as it stands when the batch is drawn (one update ahead,
+                while the previous step trains); while the set is still empty (before the
+                first scored batch is committed) the whole batch is fresh levels. It never
+                waits for an Explorer
+
+What differs from the paper's SFL (and `ray.schedule: sequential`): the learnable set is not
+rebuilt every `ued.sfl_update_freq` steps from `ued.sfl_num_batches` batches scored while the
+learner waits (that setting is not used); it follows the Explorers' throughput, a batch at a
+time, as a sliding window; its batches are scored by policies up to `ray.max_policy_lag`
+versions old, not all by the same one; the first steps train on fresh levels only; the fresh
+levels of a training batch come from this schedule's own key chain (by step), not the step's.
+`sfl/scoring_env_steps` counts the committed batches' steps.
+
+DR and PLR train on every batch and score nothing apart from training: they keep the
+sequential schedule's steps.
 
 Every Explorer batch is committed exactly once: numbered like every state-changing call
 (`workers.ray_restarts.RemoteService`), re-issued with the current policy when its Explorer
@@ -44,7 +71,7 @@ import jax
 
 from level_buffer import Source
 from ued.config import TrainConfig
-from ued.curricula import ACCEL, Branch
+from ued.curricula import ACCEL, SFL, Branch
 from workers.actor_manager import Call
 from workers.durable_service import Slot
 from workers.ray_async import AsyncRun
@@ -54,6 +81,7 @@ from workers.ray_start import Workers
 from workers.ued_step import LevelRequest, UEDRun
 
 BACKGROUND_KEY = 0xC0471  # folded into the seed: the key chain of the Explorers' batches
+SFL_BATCH_KEY = 0x5F1B  # folded into the seed: the keys of SFL's training batches, by step
 KEY_BLOCK = 256  # Explorer batches whose keys one JAX call makes
 
 
@@ -66,14 +94,20 @@ class ContinuousRun(AsyncRun):
         super().__init__(ray, config, run, learner, workers, service, start)
         curriculum = run.curriculum
         # Robust PLR and ACCEL score new levels without training on them: those scores run
-        # without pause. Curricula that train on every batch keep the sequential steps.
+        # without pause. DR and PLR, which train on every batch, keep the sequential steps.
         self.scores_apart = any(not curriculum.learns(b) for b in curriculum.branches)
+        # SFL: Explorers score learnability batches without pause; the learner trains on SFL
+        # batches drawn from the learnable set as it stands.
+        self.learnability = isinstance(curriculum, SFL)
+        self.explores = self.scores_apart or self.learnability
         self.mutates = isinstance(curriculum, ACCEL)
         self.requests: deque[tuple[LevelRequest, Call]] = deque()  # ACCEL children waiting
         self.key = jax.random.fold_in(jax.random.key(config.seed ^ BACKGROUND_KEY), start)
         self.issued = 0  # Explorer batches issued this session
         self.batches: dict[int, str] = {}  # Explorer batch -> "issued" | "committed"
         self.next_replay: Call | None = None  # drawn while the learner trains
+        self.next_sfl: tuple[int, Call] | None = None  # (step, its SFL batch), the same
+        self.sfl_key = jax.random.key(config.seed ^ SFL_BATCH_KEY)
         self.filled = False  # the buffer reached its minimum fill ratio (it never shrinks)
         self.group_commits = 0
         self.paused = False  # no new Explorer batches (while draining)
@@ -111,7 +145,15 @@ class ContinuousRun(AsyncRun):
         k_levels, key = self.batch_keys(self.issued)
         score = self.config.ued.score
         then = "its batches are re-issued with the current policy on its restart"
-        if self.requests:
+        if self.learnability:  # SFL: fresh levels the Explorer makes, scored by learnability
+            ued = self.config.ued
+            size, steps = ued.sfl_batch_size, ued.sfl_rollout_steps
+            request = LevelRequest("fresh", (k_levels, size), Source.RANDOM)
+            batch = Batch(self.issued, request, key, self.learner.version, i, None)
+            batch.score = Call(self.names[i], "learnability_fresh",
+                               lambda: (self.learner.params, k_levels, size, key, steps),
+                               then=then)
+        elif self.requests:
             request, levels = self.requests.popleft()
             batch = Batch(self.issued, request, key, self.learner.version, i, levels)
             batch.score = Call(self.names[i], "score_levels",
@@ -150,7 +192,7 @@ class ContinuousRun(AsyncRun):
                     group.append(accepted)
             if group:
                 self.commit_group(group)
-        if self.scores_apart:
+        if self.explores:
             self.top_up()
         self.service.settle(block=False)
 
@@ -172,15 +214,22 @@ class ContinuousRun(AsyncRun):
     def commit_group(self, group: list[tuple[Batch, Any, Any, int]]) -> None:
         """Offer the scored batches of `group` to the buffer in one call (one fsync)."""
         calls = []
+        ued = self.config.ued
         for j, (batch, scores, best, lag) in enumerate(group):
             request = batch.request
-            calls.append(("insert", (Slot(j), scores, best, batch.version, request.source),
-                          {"parent_ids": request.parent_ids}))
+            if self.learnability:  # into the window of SFL's learnable set
+                calls.append(("add_learnable", (Slot(j), scores), {}))
+                explored = ued.sfl_batch_size * ued.sfl_rollout_steps
+                self.run.sfl_scoring_steps += explored
+            else:
+                calls.append(("insert", (Slot(j), scores, best, batch.version, request.source),
+                              {"parent_ids": request.parent_ids}))
+                explored = self.config.learner.steps_per_update
             self.batches[batch.step] = "committed"
             self.stats.committed += 1
             self.stats.staleness[lag] += 1
             self.recent_lags.append(lag)
-            self.stats.explored_steps += self.config.learner.steps_per_update
+            self.stats.explored_steps += explored
         levels = tuple(batch.made if batch.levels is None else batch.levels
                        for batch, *_ in group)
         self.service.send_group(calls, levels)
@@ -197,6 +246,11 @@ class ContinuousRun(AsyncRun):
             self.service.settle(block=True)
         finally:
             self.paused = False
+
+    def background_steps(self) -> int:
+        """Env steps of the Explorer batches committed this session: every one was scored
+        beside the learner's steps."""
+        return self.stats.explored_steps
 
     def record(self) -> dict[str, Any]:
         return {**super().record(), "schedule": "continuous",
@@ -230,7 +284,10 @@ class ContinuousRun(AsyncRun):
 
     def step(self, step: int, key: jax.Array) -> tuple[Branch, dict[str, Any] | None, Any]:
         """Curriculum step `step`: a replay step on the learner, with the Explorers kept busy
-        meanwhile (a curriculum that trains on every batch: the sequential steps)."""
+        meanwhile (SFL: `sfl_step`; DR and PLR, which train on every batch: the sequential
+        steps)."""
+        if self.learnability:
+            return self.sfl_step(step, key)
         if not self.scores_apart:
             return super().step(step, key)
         self.top_up()
@@ -261,6 +318,40 @@ class ContinuousRun(AsyncRun):
                                                ids), levels))
         metrics = UEDRun.step_metrics(metrics, Branch.REPLAY, True, self.learner.version)
         return Branch.REPLAY, metrics, None
+
+    # SFL: a step on the learnable set as it stands ------------------------------------------
+
+    def sfl_levels(self, step: int) -> Call:
+        """Step `step`'s SFL batch (`LevelService.sfl_batch`), asked of the service (or already
+        drawn, while the previous step trained); it goes to the learner by ref."""
+        if self.next_sfl is not None and self.next_sfl[0] == step:
+            return self.next_sfl[1]
+        key = jax.random.fold_in(self.sfl_key, step)
+        return self.actors.send(Call.of(SERVICE, "sfl_batch", key,
+                                        self.config.learner.num_envs))
+
+    def sfl_step(self, step: int, key: jax.Array) -> tuple[Branch, dict[str, Any], None]:
+        """An SFL step: the learner trains on its SFL batch (fresh levels and the learnable
+        set's) while the Explorers score learnability batches; it never waits for them."""
+        self.top_up()
+        self.collect(block=False)
+        k_roll = jax.random.split(key, 3)[1]  # UEDRun.step's rollout key
+        levels = self.sfl_levels(step)
+        train = self.actors.send(Call("learner", "train", lambda: (levels.ref, k_roll),
+                                      after=(levels,)))
+        # The next batch is drawn while this one trains (it does not see the Explorer
+        # results committed meanwhile).
+        self.next_sfl = (step + 1, self.sfl_levels(step + 1))
+        t0 = time.perf_counter()
+        self.serve_until(train)
+        metrics = self.actors.get(train)
+        self.stats.learner_busy_s += time.perf_counter() - t0
+        self.stats.trained_steps += self.config.learner.steps_per_update
+        self.learner.version += 1
+        self.ledger[step] = "committed"
+        self.run.curriculum.observe(Branch.SFL)
+        metrics = UEDRun.step_metrics(metrics, Branch.SFL, True, self.learner.version)
+        return Branch.SFL, metrics, None
 
 
 __all__ = ["ContinuousRun"]

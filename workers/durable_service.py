@@ -2,10 +2,10 @@
 between snapshots, so that a restart of its process loses none and applies none twice.
 
 Every call that changes the service's state (`insert`, `update`, `replay`,
-`sample_replay_decision`, `set_learnable`) is applied, then appended to a commit log in the run's
-`levels/` folder, fsynced, and only then acknowledged. The calls are deterministic given the
-state (the buffer's own random state included), so a snapshot plus the log after it reproduces
-the state exactly:
+`sample_replay_decision`, `set_learnable`, `add_learnable`) is applied, then appended to a
+commit log in the run's `levels/` folder, fsynced, and only then acknowledged. The calls are
+deterministic given the state (the buffer's own random state included), so a snapshot plus the
+log after it reproduces the state exactly:
 
     levels/commits-<step>.log    the calls since the snapshot of <step> (0: since the start of
                                  the session, from the state the constructor builds), one
@@ -47,7 +47,8 @@ from ued.run_folder import SET_ASIDE_DIR
 from workers.level_service import LevelService
 
 LOG_NAME = "commits-{}.log"
-MUTATING = ("insert", "update", "replay", "sample_replay_decision", "set_learnable")
+MUTATING = ("insert", "update", "replay", "sample_replay_decision", "set_learnable",
+            "add_learnable")
 KEEP_RESULTS = 256  # results of the newest calls, for calls sent again after a restart
 
 
@@ -143,6 +144,9 @@ class DurableLevelService(LevelService):
 
     def set_learnable(self, *args: Any, **kwargs: Any) -> Any:
         return self.apply(self.seq + 1, "set_learnable", *args, **kwargs)
+
+    def add_learnable(self, *args: Any, **kwargs: Any) -> Any:
+        return self.apply(self.seq + 1, "add_learnable", *args, **kwargs)
 
     # --- snapshots ---------------------------------------------------------------------------
 

@@ -6,6 +6,8 @@ saves and loads itself as files in a snapshot folder:
 
     buffer-<step>.msgpack       the PLR buffer (levels, scores, staleness, its random state)
     learnable-<step>.msgpack    SFL's learnable set (a buffer whose scores are p (1 - p))
+    sfl-window-<step>.msgpack   SFL's newest scored batches, each one's most learnable levels
+                                (`add_learnable`, the Ray driver's continuous schedule)
     state-<step>.json           the caller's small state (the curriculum's); written last, so
                                 its presence marks a complete snapshot
 
@@ -68,6 +70,9 @@ class LevelService:
         self.buffer = (LevelBuffer(self.template, buffer_config(ued), seed=seed)
                        if use_buffer else None)
         self.learnable: LevelBuffer | None = None
+        # The continuous schedule's window (`add_learnable`): the `sfl_top_k` most learnable
+        # levels of each of the newest `sfl_num_batches` committed batches, in commit order.
+        self.sfl_window: LevelBuffer | None = None
 
     # --- levels out --------------------------------------------------------------------------
 
@@ -130,19 +135,58 @@ class LevelService:
     def set_learnable(self, levels: EnvParams, scores: Any, top_k: int) -> np.ndarray:
         """Keep the `top_k` levels of highest learnability (ties: the earlier level) as SFL's
         learnable set; returns their learnability scores, best first."""
-        scores = np.asarray(scores, np.float64).reshape(-1)
-        k = min(int(top_k), scores.shape[0])
-        order = np.argsort(-scores, kind="stable")[:k]
-        chosen = jax.tree.map(lambda x: np.asarray(x)[order], to_host(levels))
-        learnable = LevelBuffer(self.template, BufferConfig(capacity=k, duplicate_check=False,
-                                                            minimum_fill_ratio=0.0),
-                                seed=self.seed)  # seeded: the saved set is reproducible
-        # -inf (no episode ended) would be refused by the buffer: keep such levels at a score
-        # below every real learnability instead, so the set always has k levels.
-        kept = np.where(np.isfinite(scores[order]), scores[order], -1.0)
-        learnable.insert_batch(chosen, kept, sources=Source.RANDOM)
-        self.learnable = learnable
+        chosen, kept = most_learnable(levels, scores, top_k)
+        self.learnable = self._level_set(chosen, kept)
         return kept
+
+    def add_learnable(self, levels: EnvParams, scores: Any) -> np.ndarray:
+        """One more batch of levels scored by learnability (the Ray driver's continuous
+        schedule): the learnable set becomes the `sfl_top_k` most learnable levels of the
+        newest `sfl_num_batches` batches added (ties: the earlier batch, then the earlier
+        level); returns its scores, best first. Only each batch's own top `sfl_top_k` can be
+        among them, so the window keeps those (`sfl_window`), a batch's at a time."""
+        ued = self.ued
+        n = np.asarray(scores).reshape(-1).shape[0]
+        if n != ued.sfl_batch_size:  # the window counts batches of sfl_batch_size levels
+            raise ValueError(f"add_learnable: {n} scores, but a batch holds "
+                             f"ued.sfl_batch_size = {ued.sfl_batch_size} levels")
+        k = min(ued.sfl_top_k, ued.sfl_batch_size)
+        levels, scores = most_learnable(levels, scores, k)
+        window = self.sfl_window
+        if window is not None and len(window) and ued.sfl_num_batches > 1:
+            # Slots hold the batches in commit order (each window is built afresh): keep the
+            # newest sfl_num_batches - 1 batches' levels, the oldest one leaves.
+            ids = window.ids[-(ued.sfl_num_batches - 1) * k:]
+            levels = jax.tree.map(lambda a, b: np.concatenate([a, b]), window.get(ids), levels)
+            scores = np.concatenate([window.scores[-ids.shape[0]:], scores])
+        self.sfl_window = self._level_set(levels, scores, ued.sfl_num_batches * k)
+        chosen, kept = most_learnable(levels, scores, ued.sfl_top_k)
+        self.learnable = self._level_set(chosen, kept)
+        return kept
+
+    def _level_set(self, levels: EnvParams, scores: np.ndarray, capacity: int | None = None
+                   ) -> LevelBuffer:
+        """A buffer of `capacity` (default: as many as `levels`) holding `levels` in order."""
+        capacity = scores.shape[0] if capacity is None else capacity
+        out = LevelBuffer(self.template, BufferConfig(capacity=capacity, duplicate_check=False,
+                                                      minimum_fill_ratio=0.0),
+                          seed=self.seed)  # seeded: the saved set is reproducible
+        out.insert_batch(levels, scores, sources=Source.RANDOM)
+        return out
+
+    def sfl_batch(self, key: jax.Array, n: int) -> EnvParams:
+        """SFL's training batch on the host (`sfl_split`): fresh levels and levels drawn from
+        the learnable set; all fresh while the set is empty (the continuous schedule before
+        its first scored batch is committed)."""
+        k_fresh, n_fresh, k_pick, n_pick = sfl_split(key, n, self.ued.sfl_fresh_fraction)
+        if not self.has_learnable():
+            n_fresh, n_pick = n, 0
+        parts = []
+        if n_fresh:
+            parts.append(to_host(self.fresh(k_fresh, n_fresh)))
+        if n_pick:
+            parts.append(to_host(self.sample_learnable(k_pick, n_pick)))
+        return jax.tree.map(lambda *xs: np.concatenate(xs), *parts)
 
     def sample_learnable(self, key: jax.Array, n: int) -> EnvParams:
         """n levels drawn uniformly (with replacement) from the learnable set."""
@@ -189,6 +233,8 @@ class LevelService:
             self.buffer.save(folder / f"buffer-{step}.msgpack")
         if self.learnable is not None:
             self.learnable.save(folder / f"learnable-{step}.msgpack")
+        if self.sfl_window is not None:
+            self.sfl_window.save(folder / f"sfl-window-{step}.msgpack")
         atomic_write_text(folder / f"state-{step}.json", json.dumps(state, indent=1))
         if keep is not None:
             for old in snapshot_steps(folder)[:-keep]:
@@ -210,12 +256,33 @@ class LevelService:
             self.buffer = LevelBuffer.load(folder / f"buffer-{step}.msgpack", self.template)
         path = folder / f"learnable-{step}.msgpack"
         self.learnable = LevelBuffer.load(path, self.template) if path.is_file() else None
+        path = folder / f"sfl-window-{step}.msgpack"
+        self.sfl_window = LevelBuffer.load(path, self.template) if path.is_file() else None
         return state
 
     def _need_buffer(self) -> LevelBuffer:
         if self.buffer is None:
             raise RuntimeError("this curriculum has no level buffer")
         return self.buffer
+
+
+def most_learnable(levels: EnvParams, scores: Any, top_k: int) -> tuple[EnvParams, np.ndarray]:
+    """The `top_k` levels of highest learnability (ties: the earlier level) and their scores,
+    best first. -inf (no episode ended) would be refused by a buffer: such levels keep a score
+    of -1, below every real learnability, so that a set always has `top_k` levels."""
+    scores = np.asarray(scores, np.float64).reshape(-1)
+    order = np.argsort(-scores, kind="stable")[:min(int(top_k), scores.shape[0])]
+    chosen = jax.tree.map(lambda x: np.asarray(x)[order], to_host(levels))
+    return chosen, np.where(np.isfinite(scores[order]), scores[order], -1.0)
+
+
+def sfl_split(key: jax.Array, n: int, fresh_fraction: float
+              ) -> tuple[jax.Array, int, jax.Array, int]:
+    """How SFL's training batch of `n` levels is drawn with `key`: (fresh levels' key, their
+    number, the learnable set's key, its number)."""
+    k_fresh, k_pick = jax.random.split(key)
+    n_fresh = int(round(n * fresh_fraction))
+    return k_fresh, n_fresh, k_pick, n - n_fresh
 
 
 def snapshot_steps(folder: str | os.PathLike) -> list[int]:
@@ -231,4 +298,5 @@ def snapshot_steps(folder: str | os.PathLike) -> list[int]:
     return sorted(steps)
 
 
-__all__ = ["LevelService", "buffer_config", "snapshot_steps", "to_device", "to_host"]
+__all__ = ["LevelService", "buffer_config", "most_learnable", "sfl_split", "snapshot_steps",
+           "to_device", "to_host"]

@@ -96,6 +96,11 @@ class AsyncRun:
         if block and self.evaluations:  # re-run ones: wait for them too
             self.log_evaluations(writer, stream, block=True)
 
+    def background_steps(self) -> int:
+        """Env steps explored beside the steps this session (none: every batch this schedule
+        scores is a step of its own)."""
+        return 0
+
     def record(self) -> dict[str, Any]:
         """What `ray.json` keeps of the schedule: batches, re-scores, the staleness histogram."""
         states = Counter(self.ledger.values())

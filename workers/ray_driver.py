@@ -335,6 +335,9 @@ class RayRunner(Runner):
                   "restarts": dict(sorted(self.deaths.count.items()))}
         return {**fields, **(self.asynchronous.record() if self.asynchronous else {})}
 
+    def background_steps(self) -> int:
+        return self.asynchronous.background_steps() if self.asynchronous else 0
+
     def step(self, index: int, key: jax.Array, *, last: bool, checkpoint_due: bool) -> bool:
         asynchronous = self.asynchronous
         t0 = time.perf_counter()

@@ -1,8 +1,9 @@
 """Resume from the newest intact step of a run folder, and report the integrity of all of them.
 
 A step can be resumed when its orbax checkpoint restores and, for a UED run, its level snapshot
-reads back: `state-<step>.json` parses, and `buffer-<step>.msgpack` / `learnable-<step>.msgpack`
-pass the level-buffer format's checks (magic, version, SHA-256, every length, dtype and shape).
+reads back: `state-<step>.json` parses, and `buffer-<step>.msgpack`, `learnable-<step>.msgpack`
+and `sfl-window-<step>.msgpack` (where they exist) pass the level-buffer format's checks (magic,
+version, SHA-256, every length, dtype and shape).
 The checkpoint of a step records the SHA-256 of its snapshot's files: one edited since is
 damaged too. `restore_intact` tries the steps newest first, says in one line what is wrong with
 each step it passes over, and moves the files of every step newer than the one it resumes from
@@ -84,7 +85,8 @@ def snapshot_problem(levels_dir: Path, step: int, needs_buffer: bool,
         return f"{state}: unreadable ({gist(err)})"
     if problem is not None:
         return f"{state}: {problem}"
-    for name, required in (("buffer", needs_buffer), ("learnable", False)):
+    for name, required in (("buffer", needs_buffer), ("learnable", False),
+                           ("sfl-window", False)):
         path = levels_dir / f"{name}-{step}.msgpack"
         if not path.is_file():
             if required:

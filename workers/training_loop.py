@@ -183,6 +183,11 @@ class Runner(abc.ABC):
     def step(self, index: int, key: jax.Array, *, last: bool, checkpoint_due: bool) -> bool:
         """Run step `index` with `key`; whether it trained the policy."""
 
+    def background_steps(self) -> int:
+        """Env steps explored beside the steps (levels scored while the learner trains), so
+        far this call: the clock counts them as explored."""
+        return 0
+
     @abc.abstractmethod
     def host_metrics(self) -> dict[str, Any]:
         """The newest step's metrics on the host (waits for the step)."""
@@ -277,7 +282,8 @@ def train_loop(runner: Runner, run_dir: Path, *, resume: bool, max_updates: int 
                 if bad:
                     raise diverged(run_dir, done, f"{', '.join(bad)} is not finite",
                                    checkpoints.latest())
-                timing, rate = clock.read(done, trained if runner.explores else None)
+                timing, rate = clock.read(done, trained if runner.explores else None,
+                                          runner.background_steps())
                 runner.log(metrics, Report(done, last, timing, rate, clock.eta_steps_per_s,
                                            total, runner.env_steps, output))
             every = runner.eval_every

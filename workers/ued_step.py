@@ -15,7 +15,10 @@ This is sequential PLR / Robust PLR / ACCEL exactly as the papers (and JaxUED) d
 `UEDRun.step` takes every decision. Where and when the parts run is its `Schedule`: by default
 all of it here and now (the local driver, and the Ray driver's deterministic mode, whose
 workers are stand-ins that call Ray actors); the Ray driver's asynchronous schedule hands the
-steps that only score levels to Explorers and commits their results when they arrive.
+steps that only score levels to Explorers and commits their results when they arrive. Its
+continuous schedule (`workers.continuous`) departs from these steps for Robust PLR, ACCEL and
+SFL: Explorers score without pause (SFL: the learnable set is refreshed as scored batches come
+in, not every sfl_update_freq steps).
 
 A step that scores new or mutated levels asks the level service for them with a
 `LevelRequest`: the service call that makes them, and the source and parents the buffer files
@@ -48,7 +51,7 @@ from ued.tensorboard import SummaryWriter
 from workers.evaluator import Evaluator
 from workers.explorer import Explorer
 from workers.learner import LearnerWorker
-from workers.level_service import LevelService, to_device, to_host
+from workers.level_service import LevelService, sfl_split, to_device, to_host
 from workers.resume import state_problem
 
 T = TypeVar("T")
@@ -246,13 +249,12 @@ class UEDRun:
 
     def sfl_batch(self, key: jax.Array, n: int) -> EnvParams:
         """SFL's training batch: fresh random levels and levels of the learnable set."""
-        k_fresh, k_pick = jax.random.split(key)
-        n_fresh = int(round(n * self.config.ued.sfl_fresh_fraction))
+        k_fresh, n_fresh, k_pick, n_pick = sfl_split(key, n, self.config.ued.sfl_fresh_fraction)
         parts = []
         if n_fresh:
             parts.append(to_device(self.service.fresh(k_fresh, n_fresh)))
-        if n - n_fresh:
-            parts.append(to_device(self.service.sample_learnable(k_pick, n - n_fresh)))
+        if n_pick:
+            parts.append(to_device(self.service.sample_learnable(k_pick, n_pick)))
         if len(parts) == 1:
             return parts[0]
         return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), *parts)
