@@ -43,6 +43,7 @@ import jax
 import jax.numpy as jnp
 import optax
 from flax import struct
+from jax.flatten_util import ravel_pytree
 
 from tabx import constants as C
 from tabx.controllers import Controller, controlled_actions, with_tiers
@@ -144,6 +145,15 @@ def valid_count(valid: jax.Array, axis_name: str | None = None) -> jax.Array:
     if axis_name is not None:
         count = jax.lax.psum(count, axis_name)
     return jnp.maximum(count, 1)
+
+
+def psum_flat(tree: Any, axis_name: str) -> Any:
+    """`lax.psum` of a whole tree as one flat vector: the same sums, one all-reduce. XLA's
+    gloo collectives (CPU processes) run a tuple all-reduce leaf by leaf, a round trip each:
+    MAPPO's 34 gradient and metric leaves took a 2-process group 2.39 s per update, one
+    vector 1.83 s (docs/benchmarks_distributed.md, "Learner groups")."""
+    flat, unflatten = ravel_pytree(tree)
+    return unflatten(jax.lax.psum(flat, axis_name))
 
 
 def policy_terms(logits: jax.Array, mask: jax.Array, actions: jax.Array
@@ -658,7 +668,7 @@ class PPOLearner:
         the metrics with `grad_norm`."""
         num_envs = batch["starts"].shape[1]
         grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
-        total = (lambda x: x) if axis_name is None else functools.partial(jax.lax.psum,
+        total = (lambda x: x) if axis_name is None else functools.partial(psum_flat,
                                                                            axis_name=axis_name)
         minibatches = self.ppo.num_minibatches
         if axis_name is not None:  # each shard its own order of its envs
