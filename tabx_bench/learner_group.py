@@ -3,7 +3,8 @@ group of N processes (`ued.learners.distributed`) beside the one-process update.
 
 N = 1 runs in the benchmark's own process (all its devices: one per core on a CPU). N > 1
 starts N member processes on this machine (`python -m tabx_bench.group_member`), each with
-its share of the cores as CPU devices (cores / N, at least 1), joined by JAX's multi-process
+its share of the cores as CPU devices (cores / N, at least 1) and, by default, pinned to
+them (`share_cores`), joined by JAX's multi-process
 runtime (gloo collectives on 127.0.0.1); every member runs `run_train_bench`'s protocol in
 step and member 0 reports. So 2 processes x 1 device against 1 process x 2 devices is the
 cost of the processes and their gloo reductions on the same cores.

@@ -246,9 +246,10 @@ def add_train_bench(which: argparse._SubParsersAction) -> None:
     p.add_argument("--learners", type=int_list(1), default=[1],
                    help="comma-separated learner-group sizes: 1 runs here, N > 1 in N "
                         "processes of this machine sharing its cores (default 1)")
-    p.add_argument("--share-cores", action="store_true",
-                   help="pin each member of a group to its share of the cores (as "
-                        "ray.learner_share_cores does; default: members share every core)")
+    p.add_argument("--share-cores", action=argparse.BooleanOptionalAction, default=True,
+                   help="pin each member of a group to its share of the machine's cores, as "
+                        "ray.learner_share_cores does (default; --no-share-cores: members "
+                        "share every core)")
     p.add_argument("--json", help="also write results as JSON lines to this file")
     p.set_defaults(func=bench_train)
 
