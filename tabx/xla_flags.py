@@ -71,4 +71,18 @@ def apply() -> bool:
     return True
 
 
-__all__ = ["apply", "jaxlib_is_measured", "usable_cores"]
+def match_devices_to_cores() -> bool:
+    """After this process's CPU affinity changed (a learner group member pinned to its share
+    of the cores) and before JAX starts its backend: one CPU device per core it may now use,
+    replacing the count `apply` set. Returns True if XLA_FLAGS changed."""
+    if os.environ.get("TABX_KEEP_XLA_FLAGS") == "1" or not jaxlib_is_measured():
+        return False
+    kept = [f for f in os.environ.get("XLA_FLAGS", "").split() if _DEVICES_FLAG not in f]
+    cores = usable_cores()
+    flags = " ".join(kept + ([f"--{_DEVICES_FLAG}={cores}"] if cores > 1 else []))
+    changed = flags != os.environ.get("XLA_FLAGS", "")
+    os.environ["XLA_FLAGS"] = flags
+    return changed
+
+
+__all__ = ["apply", "jaxlib_is_measured", "match_devices_to_cores", "usable_cores"]

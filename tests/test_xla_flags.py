@@ -45,6 +45,20 @@ def test_one_core_gets_one_device(flags):
     assert "device_count" not in flags("", cores=1)
 
 
+def test_a_pinned_group_member_gets_a_device_per_core_it_keeps(flags, monkeypatch):
+    """`apply` sized the devices to the machine; pinned to 1 of 4 cores the member gets 1
+    device, to 2 of them 2; its other flags stay."""
+    flags("--xla_cpu_foo=1", cores=4)
+    monkeypatch.setattr(xla_flags, "usable_cores", lambda: 1)
+    assert xla_flags.match_devices_to_cores()
+    assert "device_count" not in os.environ["XLA_FLAGS"] and "--xla_cpu_foo=1" in os.environ[
+        "XLA_FLAGS"]
+    monkeypatch.setattr(xla_flags, "usable_cores", lambda: 2)
+    assert xla_flags.match_devices_to_cores()
+    assert "--xla_force_host_platform_device_count=2" in os.environ["XLA_FLAGS"].split()
+    assert not xla_flags.match_devices_to_cores()  # nothing left to change
+
+
 def test_opt_out_and_unmeasured_jaxlib_leave_xla_flags_alone(flags, monkeypatch):
     monkeypatch.setenv("TABX_KEEP_XLA_FLAGS", "1")
     assert flags("--xla_cpu_foo=1") == "--xla_cpu_foo=1"

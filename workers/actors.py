@@ -198,6 +198,7 @@ class LearnerActor(ExplorerActor):
 
             if config.ray.learner_share_cores:
                 distributed.share_cores(*group[3:])
+                xla_flags.match_devices_to_cores()  # a device per core it keeps
             distributed.join(*group[:3])
         super().__init__(config)
         self.group = group
