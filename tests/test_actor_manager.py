@@ -266,13 +266,11 @@ class ServiceKilled:
         return call
 
 
-def test_continuous_scoring_commits_every_batch_once_when_an_explorer_and_the_service_die(
-        tmp_path):
-    # ACCEL on the continuous schedule; the Explorer is killed during its third batch, the
-    # service during its second and fifth group commits: the lost batch is re-issued, the
-    # lost group sent again (numbered: nothing applied twice), and every batch is committed
-    # once. (With real SIGKILLs: tests/test_ray_driver.py, -m slow.)
-    from level_buffer import Source
+def continuous_run_with_deaths(config: Any, tmp_path: Any, scoring_call: str,
+                               service_deaths: set[int]) -> tuple[Any, ...]:
+    """The continuous schedule over stand-in actors whose Explorer is killed during its third
+    `scoring_call` and whose service dies in the group commits numbered `service_deaths`:
+    (schedule, Explorer, service actor, RemoteService, the deaths' log)."""
     from workers.actors import ExplorerActor, LearnerActor
     from workers.continuous import ContinuousRun
     from workers.ray_handles import ExplorerPool, RemoteLearner
@@ -280,15 +278,12 @@ def test_continuous_scoring_commits_every_batch_once_when_an_explorer_and_the_se
     from workers.ray_start import Workers
     from workers.ued_step import UEDRun
 
-    config = ued_config("accel", **{
-        "ray.enabled": "true", "ray.explorers": 1, "ray.max_inflight": 2,
-        "ray.schedule": "continuous", "ued.buffer_size": 32, "ued.min_fill_ratio": 0.25})
     ray = FakeRay()
     learner_actor = LearnerActor(config)
     explorer_actor = ExplorerActor(config, learner_actor.learner)
     explorer_actor.cache.fetch = ray.get
-    explorer = MemoryKilled(explorer_actor, "score_levels", {3}, "e0" * 14)
-    service_actor = ServiceKilled(config, str(tmp_path / "levels"), {2, 5})
+    explorer = MemoryKilled(explorer_actor, scoring_call, {3}, "e0" * 14)
+    service_actor = ServiceKilled(config, str(tmp_path / "levels"), service_deaths)
     workers = Workers(Handle(service_actor, "5e" * 14), Handle(learner_actor, "1e" * 14),
                       [Handle(explorer, "e0" * 14)], None, 0.0)
     learner_actor.init(jax.random.key(0))
@@ -297,6 +292,22 @@ def test_continuous_scoring_commits_every_batch_once_when_an_explorer_and_the_se
     run = UEDRun(config, service, ExplorerPool(ray, workers.scorers()), [])
     schedule = ContinuousRun(ray, config, run, RemoteLearner(ray, workers.learner), workers,
                              service)
+    return schedule, explorer, service_actor, service, out
+
+
+def test_continuous_scoring_commits_every_batch_once_when_an_explorer_and_the_service_die(
+        tmp_path):
+    # ACCEL on the continuous schedule; the Explorer is killed during its third batch, the
+    # service during its second and fifth group commits: the lost batch is re-issued, the
+    # lost group sent again (numbered: nothing applied twice), and every batch is committed
+    # once. (With real SIGKILLs: tests/test_ray_driver.py, -m slow.)
+    from level_buffer import Source
+
+    config = ued_config("accel", **{
+        "ray.enabled": "true", "ray.explorers": 1, "ray.max_inflight": 2,
+        "ray.schedule": "continuous", "ued.buffer_size": 32, "ued.min_fill_ratio": 0.25})
+    schedule, explorer, service_actor, service, out = continuous_run_with_deaths(
+        config, tmp_path, "score_levels", {2, 5})
     key = jax.random.key(config.seed)
     for step in range(6):
         key, k_step = jax.random.split(key)
@@ -320,30 +331,12 @@ def test_continuous_sfl_commits_every_scored_batch_once_when_an_explorer_and_the
     # batch once (the service restarted from it). (Without deaths, and the learnable set's
     # contents: tests/test_ray_schedule.py.)
     from level_buffer.commit_log import read
-    from workers.actors import ExplorerActor, LearnerActor
-    from workers.continuous import ContinuousRun
     from workers.durable_service import LOG_NAME
-    from workers.ray_handles import ExplorerPool, RemoteLearner
-    from workers.ray_restarts import RemoteService
-    from workers.ray_start import Workers
-    from workers.ued_step import UEDRun
 
     config = ued_config("sfl", **{"ray.enabled": "true", "ray.explorers": 1,
                                   "ray.max_inflight": 2, "ray.schedule": "continuous"})
-    ray = FakeRay()
-    learner_actor = LearnerActor(config)
-    explorer_actor = ExplorerActor(config, learner_actor.learner)
-    explorer_actor.cache.fetch = ray.get
-    explorer = MemoryKilled(explorer_actor, "learnability_fresh", {3}, "e0" * 14)
-    service_actor = ServiceKilled(config, str(tmp_path / "levels"), {2})
-    workers = Workers(Handle(service_actor, "5e" * 14), Handle(learner_actor, "1e" * 14),
-                      [Handle(explorer, "e0" * 14)], None, 0.0)
-    learner_actor.init(jax.random.key(0))
-    out = io.StringIO()
-    service = RemoteService(ray, workers.service, ActorDeaths(out))
-    run = UEDRun(config, service, ExplorerPool(ray, workers.scorers()), [])
-    schedule = ContinuousRun(ray, config, run, RemoteLearner(ray, workers.learner), workers,
-                             service)
+    schedule, explorer, service_actor, _, out = continuous_run_with_deaths(
+        config, tmp_path, "learnability_fresh", {2})
     key = jax.random.key(config.seed)
     for step in range(4):
         key, k_step = jax.random.split(key)
