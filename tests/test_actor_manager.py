@@ -267,10 +267,12 @@ class ServiceKilled:
 
 
 def continuous_run_with_deaths(config: Any, tmp_path: Any, scoring_call: str,
-                               service_deaths: set[int]) -> tuple[Any, ...]:
-    """The continuous schedule over stand-in actors whose Explorer is killed during its third
-    `scoring_call` and whose service dies in the group commits numbered `service_deaths`:
-    (schedule, Explorer, service actor, RemoteService, the deaths' log)."""
+                               service_deaths: set[int], steps: int, branch: str
+                               ) -> tuple[Any, ...]:
+    """`steps` steps of the continuous schedule (each a `branch` step), then its drain, over
+    stand-in actors whose Explorer is killed during its third `scoring_call` and whose service
+    dies in the group commits numbered `service_deaths`: (schedule, Explorer, service actor,
+    RemoteService, the deaths' log)."""
     from workers.actors import ExplorerActor, LearnerActor
     from workers.continuous import ContinuousRun
     from workers.ray_handles import ExplorerPool, RemoteLearner
@@ -292,6 +294,11 @@ def continuous_run_with_deaths(config: Any, tmp_path: Any, scoring_call: str,
     run = UEDRun(config, service, ExplorerPool(ray, workers.scorers()), [])
     schedule = ContinuousRun(ray, config, run, RemoteLearner(ray, workers.learner), workers,
                              service)
+    key = jax.random.key(config.seed)
+    for step in range(steps):
+        key, k_step = jax.random.split(key)
+        assert schedule.step(step, k_step)[0].name == branch
+    schedule.drain()
     return schedule, explorer, service_actor, service, out
 
 
@@ -307,12 +314,7 @@ def test_continuous_scoring_commits_every_batch_once_when_an_explorer_and_the_se
         "ray.enabled": "true", "ray.explorers": 1, "ray.max_inflight": 2,
         "ray.schedule": "continuous", "ued.buffer_size": 32, "ued.min_fill_ratio": 0.25})
     schedule, explorer, service_actor, service, out = continuous_run_with_deaths(
-        config, tmp_path, "score_levels", {2, 5})
-    key = jax.random.key(config.seed)
-    for step in range(6):
-        key, k_step = jax.random.split(key)
-        assert schedule.step(step, k_step)[0].name == "REPLAY"
-    schedule.drain()
+        config, tmp_path, "score_levels", {2, 5}, steps=6, branch="REPLAY")
     assert explorer.restarts == 1 and service_actor.restarts == 2, out.getvalue()
     assert service.actors.deaths.count == {"explorer-0": 1, "service": 2}
     assert schedule.stats.reissued == 1
@@ -336,12 +338,7 @@ def test_continuous_sfl_commits_every_scored_batch_once_when_an_explorer_and_the
     config = ued_config("sfl", **{"ray.enabled": "true", "ray.explorers": 1,
                                   "ray.max_inflight": 2, "ray.schedule": "continuous"})
     schedule, explorer, service_actor, _, out = continuous_run_with_deaths(
-        config, tmp_path, "learnability_fresh", {2})
-    key = jax.random.key(config.seed)
-    for step in range(4):
-        key, k_step = jax.random.split(key)
-        assert schedule.step(step, k_step)[0].name == "SFL"
-    schedule.drain()
+        config, tmp_path, "learnability_fresh", {2}, steps=4, branch="SFL")
     assert explorer.restarts == 1 and service_actor.restarts == 1, out.getvalue()
     assert schedule.stats.reissued == 1
     committed = schedule.stats.committed

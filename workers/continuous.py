@@ -282,6 +282,18 @@ class ContinuousRun(AsyncRun):
                 return
             self.collect(block=False)
 
+    def trained(self, step: int, train: Call) -> Any:
+        """The answer of step `step`'s learner call `train`, serving the Explorers (commits,
+        refills) while it runs; counts the step as trained and committed."""
+        t0 = time.perf_counter()
+        self.serve_until(train)
+        answer = self.actors.get(train)
+        self.stats.learner_busy_s += time.perf_counter() - t0
+        self.stats.trained_steps += self.config.learner.steps_per_update
+        self.learner.version += 1
+        self.ledger[step] = "committed"
+        return answer
+
     def step(self, step: int, key: jax.Array) -> tuple[Branch, dict[str, Any] | None, Any]:
         """Curriculum step `step`: a replay step on the learner, with the Explorers kept busy
         meanwhile (SFL: `sfl_step`; DR and PLR, which train on every batch: the sequential
@@ -301,13 +313,7 @@ class ContinuousRun(AsyncRun):
                                       lambda: (replay.ref, k_roll, score), after=(replay,)))
         # The next batch is drawn while this one trains (it does not see this one's scores).
         self.next_replay = self.service.send("replay", n, by_ref=True)
-        t0 = time.perf_counter()
-        self.serve_until(train)
-        metrics, ids, scores, best = self.actors.get(train)
-        self.stats.learner_busy_s += time.perf_counter() - t0
-        self.stats.trained_steps += self.config.learner.steps_per_update
-        self.learner.version += 1
-        self.ledger[step] = "committed"
+        metrics, ids, scores, best = self.trained(step, train)
         self.service.forget(replay)  # answered: the learner trained on its result
         self.service.send("update", ids, scores, best, version)
         self.run.curriculum.observe(Branch.REPLAY, ids)
@@ -342,13 +348,7 @@ class ContinuousRun(AsyncRun):
         # The next batch is drawn while this one trains (it does not see the Explorer
         # results committed meanwhile).
         self.next_sfl = (step + 1, self.sfl_levels(step + 1))
-        t0 = time.perf_counter()
-        self.serve_until(train)
-        metrics = self.actors.get(train)
-        self.stats.learner_busy_s += time.perf_counter() - t0
-        self.stats.trained_steps += self.config.learner.steps_per_update
-        self.learner.version += 1
-        self.ledger[step] = "committed"
+        metrics = self.trained(step, train)
         self.run.curriculum.observe(Branch.SFL)
         metrics = UEDRun.step_metrics(metrics, Branch.SFL, True, self.learner.version)
         return Branch.SFL, metrics, None
