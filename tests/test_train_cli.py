@@ -236,3 +236,23 @@ def test_a_finished_run_prints_a_summary(tmp_path):
     assert "zero-shot mean win rate, zones (env step 64): 0.500" in text
     assert f"checkpoints: {run / 'checkpoints'} (steps 2, 4)" in text
     assert run_summary_lines(tmp_path / "nothing").startswith("summary of")
+
+
+def test_an_error_raised_in_a_ray_actor_is_shown_by_its_cause():
+    # An Explorer's call whose argument was a level-service call that raised: Ray wraps the
+    # service's error in the Explorer's, each text a coloured traceback.
+    from ray.exceptions import RayTaskError
+
+    from tabx_ued.cli import error_line
+
+    try:
+        raise KeyError("level ids [11] are not in the buffer")
+    except KeyError as cause:
+        inner = RayTaskError("mutate", "\x1b[36mray::LevelServiceActor.mutate()\x1b[39m "
+                             "(pid=7, ip=127.0.0.1)\nTraceback (most recent call last): ...",
+                             cause).as_instanceof_cause()
+    outer = RayTaskError("score_levels", "\x1b[36mray::ExplorerActor.score_levels()\x1b[39m "
+                         "(pid=8)\nTraceback ...", inner).as_instanceof_cause()
+    assert error_line(outer) == ("KeyError: 'level ids [11] are not in the buffer' (raised in "
+                                 "the Ray actor call LevelServiceActor.mutate())")
+    assert error_line(ValueError("bad\nsecond line")) == "ValueError: bad"
