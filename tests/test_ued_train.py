@@ -18,7 +18,7 @@ from test_learners_helpers import tiny_config
 from level_buffer import LevelBuffer
 from tabx.compile_counter import CompileCounter
 from ued.config import ConfigError, config_from_dict
-from ued.curricula import ACCEL, PLR, SFL, Branch, DomainRandomization
+from ued.curricula import ACCEL, PLR, SFL, Branch, DomainRandomization, RobustPLR
 from ued.run_folder import LEVELS_DIR
 from workers.learner import LearnerWorker
 from workers.level_service import snapshot_steps
@@ -62,12 +62,12 @@ def test_plr_branches_follow_the_replay_decision():
 
 
 def test_which_branches_learn():
-    plr, robust, accel, dr = PLR(), PLR(robust=True), ACCEL(), DomainRandomization()
+    plr, robust, accel, dr = PLR(), RobustPLR(), ACCEL(), DomainRandomization()
     assert plr.learns(Branch.NEW) and plr.learns(Branch.REPLAY)
     assert not robust.learns(Branch.NEW) and robust.learns(Branch.REPLAY)
     assert not accel.learns(Branch.NEW) and not accel.learns(Branch.MUTATE)
     assert accel.learns(Branch.REPLAY) and dr.learns(Branch.NEW)
-    assert PLR(robust=True, exploratory_grad_updates=True).learns(Branch.NEW)
+    assert RobustPLR(exploratory_grad_updates=True).learns(Branch.NEW)
     from ued.config import UEDSection
     from ued.registry import curriculum_for
 

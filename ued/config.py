@@ -37,11 +37,19 @@ from typing import Any
 
 import yaml
 
+from level_buffer.prioritization import PRIORITIZATIONS
 from ued.config_files import resolve_config
 from ued.errors import ConfigError
 from ued.errors import check as _check
 from ued.levels import LevelSpace
-from ued.registry import CURRICULA, LEARNERS, learner_entry, learners_where
+from ued.registry import (
+    CURRICULA,
+    LEARNERS,
+    curriculum_class,
+    is_import_path,
+    learner_entry,
+    learners_where,
+)
 from ued.yaml_reader import read_yaml
 
 # `learner` fields only the PPO learners read (`LearnerEntry.ppo_settings`): another learner's
@@ -277,7 +285,7 @@ class UEDSection:
     replay_prob: float = 0.8
     staleness_coef: float = 0.3
     min_fill_ratio: float = 0.5
-    prioritization: str = "rank"  # rank | topk
+    prioritization: str = "rank"  # rank | topk | uniform (level_buffer.prioritization)
     temperature: float = 0.3
     topk: int = 4  # levels in the softmax of top-k prioritisation
     duplicate_check: bool = True
@@ -298,12 +306,15 @@ class UEDSection:
 
     def validate(self, prefix: str = "ued") -> None:
         methods = ("none", *CURRICULA)
-        _check(self.method in methods, f"{prefix}.method",
-               f"must be one of {', '.join(methods)}, got {self.method!r}")
+        _check(self.method in methods or is_import_path(self.method), f"{prefix}.method",
+               f"must be one of {', '.join(methods)} or an import path module:Class, got "
+               f"{self.method!r}")
+        if is_import_path(self.method):
+            curriculum_class(self.method, f"{prefix}.method")  # imports it: a clear error
         _check(self.score in UED_SCORES, f"{prefix}.score",
                f"must be one of {', '.join(UED_SCORES)}, got {self.score!r}")
-        _check(self.prioritization in ("rank", "topk"), f"{prefix}.prioritization",
-               f"must be rank or topk, got {self.prioritization!r}")
+        _check(self.prioritization in PRIORITIZATIONS, f"{prefix}.prioritization",
+               f"must be one of {', '.join(PRIORITIZATIONS)}, got {self.prioritization!r}")
         for name in ("buffer_size", "topk", "sfl_batch_size", "sfl_num_batches",
                      "sfl_rollout_steps", "sfl_top_k", "sfl_update_freq", "eval_every"):
             value = getattr(self, name)

@@ -114,7 +114,7 @@ class LevelServiceActor(DurableLevelService, ActorBase):
         ActorBase.__init__(self, config)
         built = level_service_for(config, learner_for(config))
         super().__init__(built.generator, built.template, config.ued, seed=config.seed,
-                         use_buffer=built.buffer is not None, folder=folder, session=session)
+                         curriculum=built.curriculum, folder=folder, session=session)
 
     def fresh(self, key: jax.Array, n: int) -> EnvParams:
         return to_host(super().fresh(key, n))

@@ -71,14 +71,14 @@ import jax
 
 from level_buffer import Source
 from ued.config import TrainConfig
-from ued.curricula import ACCEL, SFL, Branch
+from ued.curricula import Branch, LevelRequest
 from workers.actor_manager import Call
 from workers.durable_service import Slot
 from workers.ray_async import AsyncRun
 from workers.ray_handles import Batch, RemoteLearner
 from workers.ray_restarts import SERVICE, RemoteService
 from workers.ray_start import Workers
-from workers.ued_step import LevelRequest, UEDRun
+from workers.ued_step import UEDRun
 
 BACKGROUND_KEY = 0xC0471  # folded into the seed: the key chain of the Explorers' batches
 SFL_BATCH_KEY = 0x5F1B  # folded into the seed: the keys of SFL's training batches, by step
@@ -93,14 +93,16 @@ class ContinuousRun(AsyncRun):
                  workers: Workers, service: RemoteService, start: int = 0):
         super().__init__(ray, config, run, learner, workers, service, start)
         curriculum = run.curriculum
-        # Robust PLR and ACCEL score new levels without training on them: those scores run
-        # without pause. DR and PLR, which train on every batch, keep the sequential steps.
-        self.scores_apart = any(not curriculum.learns(b) for b in curriculum.branches)
-        # SFL: Explorers score learnability batches without pause; the learner trains on SFL
-        # batches drawn from the learnable set as it stands.
-        self.learnability = isinstance(curriculum, SFL)
+        # What the curriculum's branches and hooks say, never its class: one whose steps
+        # only score new levels (Robust PLR, ACCEL) has them scored without pause; one that
+        # trains on every batch (DR, PLR) keeps the sequential steps.
+        self.scores_apart = curriculum.explores_apart()
+        # SFL steps: Explorers score learnability batches without pause; the learner trains on
+        # SFL batches drawn from the learnable set as it stands.
+        self.learnability = Branch.SFL in curriculum.branches
         self.explores = self.scores_apart or self.learnability
-        self.mutates = isinstance(curriculum, ACCEL)
+        # A MUTATE branch: each replay batch's children are scored next (ACCEL).
+        self.mutates = Branch.MUTATE in curriculum.branches
         self.requests: deque[tuple[LevelRequest, Call]] = deque()  # ACCEL children waiting
         self.key = jax.random.fold_in(jax.random.key(config.seed ^ BACKGROUND_KEY), start)
         self.issued = 0  # Explorer batches issued this session
@@ -143,7 +145,7 @@ class ContinuousRun(AsyncRun):
         and the service only inserts)."""
         n = self.config.learner.num_envs
         k_levels, key = self.batch_keys(self.issued)
-        score = self.config.ued.score
+        score = self.run.score
         then = "its batches are re-issued with the current policy on its restart"
         if self.learnability:  # SFL: fresh levels the Explorer makes, scored by learnability
             ued = self.config.ued
@@ -287,7 +289,7 @@ class ContinuousRun(AsyncRun):
         self.top_up()
         self.collect(block=False)
         self.wait_until_filled()
-        n, score = self.config.learner.num_envs, self.config.ued.score
+        n, score = self.config.learner.num_envs, self.run.score
         k_roll, k_edit = jax.random.split(key)
         replay = self.next_replay or self.service.send("replay", n, by_ref=True)
         version = self.learner.version

@@ -33,19 +33,11 @@ from level_buffer import BufferConfig, InsertResult, LevelBuffer, Replay, Source
 from tabx.files import atomic_write_text
 from tabx.params import EnvParams
 from ued.config import UEDSection
+from ued.curricula import Curriculum
 from ued.levels import LevelGenerator
 from ued.run_folder import SNAPSHOT_FILES
 
 SNAPSHOT_PATTERN = re.compile(r"^state-(\d+)\.json$")
-
-
-def buffer_config(ued: UEDSection) -> BufferConfig:
-    """The level buffer settings of a UED config section."""
-    return BufferConfig(capacity=ued.buffer_size, replay_prob=ued.replay_prob,
-                        staleness_coeff=ued.staleness_coef,
-                        minimum_fill_ratio=ued.min_fill_ratio,
-                        prioritization=ued.prioritization, temperature=ued.temperature,
-                        topk_k=ued.topk, duplicate_check=ued.duplicate_check)
 
 
 def to_host(levels: EnvParams) -> EnvParams:
@@ -61,16 +53,19 @@ def to_device(levels: EnvParams) -> EnvParams:
 
 
 class LevelService:
-    """Generator + mutator + buffer (+ SFL's learnable set)."""
+    """Generator + mutator + buffer (+ SFL's learnable set). `curriculum`: the run's method,
+    for what the buffer does its way (`buffer_config`: its settings, none where it keeps no
+    buffer; `insert_scores`: the scores new levels enter with); None: no buffer."""
 
     def __init__(self, generator: LevelGenerator, template_level: EnvParams, ued: UEDSection,
-                 seed: int = 0, use_buffer: bool = True):
+                 seed: int = 0, curriculum: Curriculum | None = None):
         self.generator = generator
         self.ued = ued
         self.seed = seed
         self.template = to_host(template_level)
-        self.buffer = (LevelBuffer(self.template, buffer_config(ued), seed=seed)
-                       if use_buffer else None)
+        self.curriculum = curriculum
+        self.buffer = (LevelBuffer(self.template, curriculum.buffer_config(ued), seed=seed)
+                       if curriculum is not None and curriculum.uses_buffer else None)
         self.learnable: LevelBuffer | None = None
         # The continuous schedule's window (`add_learnable`): the `sfl_top_k` most learnable
         # levels of each of the newest `sfl_num_batches` committed batches, in commit order.
@@ -124,9 +119,12 @@ class LevelService:
 
     def insert(self, levels: EnvParams, scores: Any, max_returns: Any, policy_version: int,
                source: Source = Source.RANDOM, parent_ids: Any = -1) -> InsertResult:
-        """Offer scored new (or mutated) levels to the buffer."""
-        return self._need_buffer().insert_batch(
-            to_host(levels), np.asarray(scores, np.float64), sources=source,
+        """Offer scored new (or mutated) levels to the buffer, with the scores the curriculum
+        gives them (`Curriculum.insert_scores`)."""
+        buffer, levels = self._need_buffer(), to_host(levels)
+        scores = self.curriculum.insert_scores(levels, np.asarray(scores, np.float64), buffer)
+        return buffer.insert_batch(
+            levels, np.asarray(scores, np.float64), sources=source,
             parent_ids=parent_ids, policy_versions=policy_version,
             max_returns=np.asarray(max_returns, np.float64))
 
@@ -318,5 +316,5 @@ def snapshot_steps(folder: str | os.PathLike) -> list[int]:
     return sorted(steps)
 
 
-__all__ = ["LevelService", "buffer_config", "most_learnable", "sfl_split", "snapshot_steps",
+__all__ = ["LevelService", "most_learnable", "sfl_split", "snapshot_steps",
            "to_device", "to_host"]

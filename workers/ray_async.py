@@ -14,14 +14,14 @@ import jax
 import numpy as np
 
 from ued.config import TrainConfig
-from ued.curricula import Branch
+from ued.curricula import Branch, LevelRequest
 from ued.tensorboard import SummaryWriter
 from workers.actor_manager import Call
 from workers.ray_handles import Batch, Evaluation, RemoteLearner
 from workers.ray_restarts import SERVICE, RemoteService
 from workers.ray_start import Workers
 from workers.ray_stats import RayStats
-from workers.ued_step import LevelRequest, UEDRun
+from workers.ued_step import UEDRun
 
 T = TypeVar("T")
 
@@ -149,7 +149,7 @@ class AsyncRun:
         levels = self.actors.send(Call.of(SERVICE, request.method, *request.args))
         i = self._free_explorer()
         batch = Batch(step, request, key, learner.version, i, levels)
-        score = self.config.ued.score
+        score = self.run.score
         # Rebuilt at every sending: the current policy, the levels as asked for last (the
         # closure holds the levels' call, not the batch: no cycle keeps refs alive).
         batch.score = Call(self.names[i], "score_levels",

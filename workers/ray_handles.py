@@ -11,12 +11,12 @@ from typing import Any
 import jax
 import numpy as np
 
+from ued.curricula import LevelRequest
 from ued.tensorboard import SummaryWriter
 from workers.actor_manager import ActorManager, Call
 from workers.actors import (
     ParamsRef,
 )
-from workers.ued_step import LevelRequest
 
 # --- the deterministic mode: the local step logic over blocking calls -------------------------
 

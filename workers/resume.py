@@ -192,15 +192,14 @@ def parents_check(levels_dir: Path, step: int, config: TrainConfig
     """(problem, note) of the levels the snapshot of `step` names as the next step's parents
     (the curriculum's `pending_parents`): a problem where the parents file does not match the
     ids, a note where neither it nor the buffer holds them (a resume drops that step)."""
-    from ued.registry import curriculum_for
+    from ued.registry import curriculum_class
 
-    curriculum = curriculum_for(config.ued)
+    curriculum = curriculum_class(config.ued.method)  # its class: nothing is built
     try:
-        curriculum.load_state_dict(json.loads((levels_dir / f"state-{step}.json").read_text()
-                                              )["curriculum"])
-    except (OSError, ValueError, KeyError, TypeError):
+        ids = curriculum.pending_parents_of(json.loads(
+            (levels_dir / f"state-{step}.json").read_text())["curriculum"])
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return None, None  # the state's own problems are `snapshot_problem`'s
-    ids = curriculum.pending_parents()
     if not ids:
         return None, None
     path = levels_dir / f"parents-{step}.msgpack"
@@ -246,9 +245,9 @@ def check_run(run_dir: Path, checkpoints: Checkpoints, template: Any = None, *,
 
 def _keeps_buffer(config: TrainConfig) -> bool:
     """Whether the run's level snapshots hold a level buffer (its curriculum's registry entry)."""
-    from ued.registry import curriculum_entry
+    from ued.registry import curriculum_class
 
-    return config.ued.enabled and curriculum_entry(config.ued.method).uses_buffer
+    return config.ued.enabled and curriculum_class(config.ued.method).uses_buffer
 
 
 def check_run_folder(run_dir: str | Path) -> list[StepCheck]:
