@@ -269,7 +269,8 @@ class RayRunner(Runner):
         self.chaos: Chaos | None = None
         self._asked: tuple[Call, Call] | None = None  # the service's statistics, asked for
         self.reached = 0  # steps done (a restart after a loss counts those since the checkpoint)
-        self.rate = RateWindow()  # env steps/s in ray.json, over RATE_WINDOW_S
+        # trained and explored env steps/s in ray.json, over RATE_WINDOW_S
+        self.rate = RateWindow()
         self.learner_first_s: float | None = None  # the learner's first update, compile included
         self.first_said = False
 
@@ -293,7 +294,7 @@ class RayRunner(Runner):
     def begin(self, start: int) -> None:
         ray, workers, config = self.ray, self.workers, self.config
         self.start = self.reached = start
-        self.rate = RateWindow(start=(start * config.learner.steps_per_update,))
+        self.rate = RateWindow()
         self.learner = RemoteLearner(ray, workers.learner, self.version, self.actors)
         placement = workers.placement(ray)
         group = workers.learner if isinstance(workers.learner, LearnerGroup) else None
@@ -395,9 +396,13 @@ class RayRunner(Runner):
                                           f" s (compilation included)\n")
                 report.output.notes.flush()
         report.show(values, None, extra=extra, callback=False)
-        (rate,) = self.rate.add(report.done * self.config.learner.steps_per_update)
-        self.record.update(background=True, steps=[self.start, report.done],
-                           env_steps_per_s=rate, rate_window_s=round(self.rate.span_s, 1),
+        played = report.played  # the loop's trained and explored env steps (Explorers' too)
+        rates = {}
+        if played is not None and played.explored is not None:
+            trained, explored = self.rate.add(played.trained, played.explored)
+            rates = {"trained_steps_per_s": trained, "explored_steps_per_s": explored,
+                     "rate_window_s": round(self.rate.span_s, 1)}
+        self.record.update(background=True, steps=[self.start, report.done], **rates,
                            buffer_size=buffer_size, **self.schedule_fields())
         callback = report.output.callback
         if callback is not None:
