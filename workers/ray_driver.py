@@ -59,6 +59,7 @@ from workers.ray_restarts import SERVICE, Chaos, RemoteService
 from workers.ray_start import (
     RAY_NAMESPACE,
     Workers,
+    address_setting,
     check_reachable,
     connect,
     import_ray,
@@ -159,9 +160,9 @@ class RayDriver(Driver):
         keep_driver_off_accelerators()
         need_ued(config)
         ray = import_ray()
-        address = join_address(config.ray)
+        address, setting = address_setting(config.ray)
         if address:
-            check_reachable(address)
+            check_reachable(address, setting)
         elif not ray.is_initialized():
             local_plan(config.ray, *local_resources())
 

@@ -125,7 +125,7 @@ def live_buffer(run_dir: str | Path, timeout_s: float = 60.0) -> tuple[LevelBuff
         raise UserError(f"{Path(run_dir) / RAY_RECORD}: no address, namespace or service "
                         f"actor recorded")
     try:
-        check_reachable(address)
+        check_reachable(address, f"{RAY_RECORD}'s address")
     except ConfigError as err:
         raise UserError(f"{run_dir}: {err}") from None
     connected_here = not ray.is_initialized()
