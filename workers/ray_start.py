@@ -22,14 +22,15 @@ from typing import Any, TextIO
 import jax
 
 from ued.config import ConfigError, RaySection, TrainConfig
-from workers.actor_manager import ActorManager
+from workers.actor_manager import ActorManager, death_cause, is_lost
 from workers.actors import (
     EvaluatorActor,
     ExplorerActor,
     LearnerActor,
     LevelServiceActor,
 )
-from workers.learner_group import start_group
+from workers.driver import RunStopped
+from workers.learner_group import LearnerGroup, start_group
 
 RAY_ENV = {"RAY_USAGE_STATS_ENABLED": "0"}
 RAY_NAMESPACE = "tabx-ued"  # of the named actors of runs (`tabx runs buffer` finds them)
@@ -426,16 +427,26 @@ def check_resources(ray: Any, config: TrainConfig, gpus: float) -> None:
 
 def wait_until_ready(ray: Any, workers: Workers, stream: TextIO,
                      report_every_s: float = 30.0) -> None:
-    """Wait for every actor's constructor (errors raise here). On a cluster that is short of
-    resources actors stay pending (an autoscaler may yet add nodes): say which, periodically."""
-    pending = {a.ready.remote(): name for a, name in zip(workers.all(), workers.names(),
-                                                          strict=True)}
+    """Wait for every actor's constructor (errors raise here; an actor lost meanwhile, to the
+    memory monitor or with its node, is a RunStopped naming it: `lost` is "learner" for any
+    member of a learner group). On a cluster that is short of resources actors stay pending
+    (an autoscaler may yet add nodes): say which, periodically."""
+    members = workers.learner.members if isinstance(workers.learner, LearnerGroup) else []
+    actors = [*workers.all(), *members[1:]]
+    names = [*workers.names(), *(f"learner-{i}" for i in range(1, len(members)))]
+    pending = {a.ready.remote(): name for a, name in zip(actors, names, strict=True)}
     t0 = time.perf_counter()
     while pending:
         ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=report_every_s)
         for ref in ready:
-            ray.get(ref)
-            pending.pop(ref)
+            name = pending.pop(ref)
+            try:
+                ray.get(ref)
+            except Exception as err:
+                if not is_lost(ray, err):
+                    raise
+                role = "learner" if name.startswith("learner") else name
+                raise RunStopped(f"{name} died ({death_cause(err)})", lost=role) from err
         if pending:
             resources = ray.available_resources()
             stream.write(f"ray: waited {time.perf_counter() - t0:.0f} s for "
