@@ -268,3 +268,23 @@ def test_a_ray_run_resumed_without_ray_continues_on_the_local_driver(capsys, tmp
     with Checkpoints(run / CHECKPOINT_DIR) as checkpoints:
         assert checkpoints.latest() == 3
     assert read_run_config(run).ray.enabled  # config.yaml is the run's own
+
+
+def test_an_error_raised_in_a_ray_actor_is_shown_by_its_cause():
+    # An Explorer's call whose argument was a level-service call that raised: Ray wraps the
+    # service's error in the Explorer's, each text a coloured traceback.
+    from ray.exceptions import RayTaskError
+
+    from tabx_ued.cli import error_line
+
+    try:
+        raise KeyError("level ids [11] are not in the buffer")
+    except KeyError as cause:
+        inner = RayTaskError("mutate", "\x1b[36mray::LevelServiceActor.mutate()\x1b[39m "
+                             "(pid=7, ip=127.0.0.1)\nTraceback (most recent call last): ...",
+                             cause).as_instanceof_cause()
+    outer = RayTaskError("score_levels", "\x1b[36mray::ExplorerActor.score_levels()\x1b[39m "
+                         "(pid=8)\nTraceback ...", inner).as_instanceof_cause()
+    assert error_line(outer) == ("KeyError: 'level ids [11] are not in the buffer' (raised in "
+                                 "the Ray actor call LevelServiceActor.mutate())")
+    assert error_line(ValueError("bad\nsecond line")) == "ValueError: bad"

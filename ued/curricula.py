@@ -17,7 +17,9 @@ from and whether the rollout also trains the policy:
 The replay decision belongs to the level buffer (`LevelBuffer.sample_replay_decision`: filled to
 the minimum fill ratio and a draw below the replay probability), so that its random stream is
 saved with the buffer and a resumed run makes the same decisions. The curriculum's own state
-(the last branch, ACCEL's last replay batch) is a small dict saved next to each checkpoint.
+(the last branch, ACCEL's last replay batch) is a small dict saved next to each checkpoint;
+ACCEL's pending parents (the levels its next step mutates, `pending_parents`) are saved there
+too, as levels: a parent may leave the buffer before its children are made.
 
 Each method is registered by name in `ued.registry` (what it needs: a buffer, scores,
 Explorers), which builds it with `from_config(ued_section)`.
@@ -56,6 +58,8 @@ class Curriculum:
                                          else bool(exploratory_grad_updates))
         self.last_branch: Branch | None = None
         self.last_replay_ids: list[int] = []
+        # The levels of the last replay batch, as drawn (host arrays; not in `state_dict`).
+        self.last_replay_levels: Any = None
 
     default_exploratory_grad_updates = True
 
@@ -73,10 +77,24 @@ class Curriculum:
             return True
         return self.exploratory_grad_updates
 
-    def observe(self, branch: Branch, replay_ids: Any = None) -> None:
+    def observe(self, branch: Branch, replay_ids: Any = None, replay_levels: Any = None
+                ) -> None:
+        """Record a step of `branch`; a replay step's level ids and levels (as drawn)."""
         self.last_branch = branch
         if branch == Branch.REPLAY:
             self.last_replay_ids = [int(i) for i in replay_ids]
+            self.last_replay_levels = replay_levels
+
+    def pending_parents(self) -> list[int]:
+        """The buffer ids of the levels the next step edits (ACCEL after a replay step), [] for
+        none: what a snapshot taken now must hold, as levels, for the run to go on."""
+        return []
+
+    def drop_pending(self) -> None:
+        """Forget the pending parents (their levels are lost): the next step decides afresh."""
+        self.last_branch = None
+        self.last_replay_ids = []
+        self.last_replay_levels = None
 
     def state_dict(self) -> dict[str, Any]:
         return {"method": self.name,
@@ -90,6 +108,7 @@ class Curriculum:
         last = state.get("last_branch")
         self.last_branch = None if last is None else Branch(int(last))
         self.last_replay_ids = [int(i) for i in state.get("last_replay_ids", [])]
+        self.last_replay_levels = None  # restored from the snapshot's parents file, if any
 
 
 class DomainRandomization(Curriculum):
@@ -142,9 +161,12 @@ class ACCEL(PLR):
         self.name = "accel"
 
     def next_branch(self, buffer: ReplayDecider | None) -> Branch:
-        if self.last_branch == Branch.REPLAY and self.last_replay_ids:
+        if self.pending_parents():
             return Branch.MUTATE
         return super().next_branch(buffer)
+
+    def pending_parents(self) -> list[int]:
+        return list(self.last_replay_ids) if self.last_branch == Branch.REPLAY else []
 
 
 class SFL(Curriculum):

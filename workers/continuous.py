@@ -120,10 +120,10 @@ class ContinuousRun(AsyncRun):
         if self.paused:
             return
         limit = self.config.ray.max_inflight
-        for i in sorted(range(len(self.scorers)), key=lambda i: self.inflight[i]):
+        for i in sorted(range(len(self.scorers)), key=self.inflight):
             if not self.actors.available(self.names[i]):
                 continue
-            while self.inflight[i] < limit:
+            while self.actors.has_room(self.names[i], limit):
                 self.issue(i)
 
     def batch_keys(self, batch: int) -> tuple[jax.Array, jax.Array]:
@@ -173,21 +173,9 @@ class ContinuousRun(AsyncRun):
         """Commit every Explorer result that is ready (waiting for one if `block`), in one
         group commit; refill the Explorers; take the service's acknowledgements."""
         if self.pending:
-            t0 = time.perf_counter()
-            refs = list(self.pending)
-            first: list[Any] = []
-            if block:
-                first, _ = self.ray.wait(refs, num_returns=1)
-                self.stats.wait_for_levels_s += time.perf_counter() - t0
-            ready, _ = self.ray.wait(refs, num_returns=len(refs), timeout=0)
-            ready = [*first, *(ref for ref in ready if ref not in first)]
-            try:  # one call for all of them; where one failed, each on its own
-                results: list[Any] = self.ray.get(ready)
-            except Exception:
-                results = [None] * len(ready)
             group = []
-            for ref, result in zip(ready, results, strict=True):
-                accepted = self.accept(ref, result)
+            for batch, result in self.finished(block):
+                accepted = self.accept(batch, result)
                 if accepted is not None:
                     group.append(accepted)
             if group:
@@ -196,20 +184,13 @@ class ContinuousRun(AsyncRun):
             self.top_up()
         self.service.settle(block=False)
 
-    def accept(self, ref: Any, result: Any = None) -> tuple[Batch, Any, Any, int] | None:
+    def accept(self, batch: Batch, result: Any) -> tuple[Batch, Any, Any, int] | None:
         """`AsyncRun.accept`; a `score_fresh` result also brings its levels: kept on the
         batch (`made`) for its insert."""
-        batch = self.pending[ref]
         if batch.levels is None:
-            if result is None:
-                try:
-                    result = self.ray.get(ref)
-                except Exception:  # AsyncRun.accept fetches it again and re-issues the batch
-                    result = None
-            if result is not None:
-                batch.made = result[3]
-                result = result[:3]
-        return super().accept(ref, result)
+            batch.made = result[3]
+            result = result[:3]
+        return super().accept(batch, result)
 
     def commit_group(self, group: list[tuple[Batch, Any, Any, int]]) -> None:
         """Offer the scored batches of `group` to the buffer in one call (one fsync)."""
@@ -275,7 +256,8 @@ class ContinuousRun(AsyncRun):
         """Commit Explorer results and refill the Explorers until `call` is answered."""
         while True:
             self.top_up()
-            ready, _ = self.ray.wait([call.ref, *self.pending], num_returns=1)
+            refs = [call.ref, *(c.ref for c in self.actors.in_flight(self.names))]
+            ready, _ = self.ray.wait(refs, num_returns=1)
             if ready and ready[0] == call.ref:
                 return
             if self.ray.wait([call.ref], timeout=0)[0]:
@@ -322,6 +304,8 @@ class ContinuousRun(AsyncRun):
                                            lambda: (k_edit, replay.ref), after=(replay,)))
             self.requests.append((LevelRequest("mutate_replay", (k_edit,), Source.MUTATION,
                                                ids), levels))
+            # Its children are asked for: nothing is pending for a snapshot to keep.
+            self.run.curriculum.observe(Branch.MUTATE)
         metrics = UEDRun.step_metrics(metrics, Branch.REPLAY, True, self.learner.version)
         return Branch.REPLAY, metrics, None
 

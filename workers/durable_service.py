@@ -151,8 +151,8 @@ class DurableLevelService(LevelService):
     # --- snapshots ---------------------------------------------------------------------------
 
     def save(self, folder: str | Path, step: int, state: dict[str, Any],
-             keep: int | None = None) -> None:
-        super().save(folder, step, state, keep)
+             keep: int | None = None, parents: EnvParams | None = None) -> None:
+        super().save(folder, step, state, keep, parents)
         if self.folder is not None and Path(folder).resolve() == self.folder.resolve():
             self._start(step)
 

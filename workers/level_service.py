@@ -8,6 +8,8 @@ saves and loads itself as files in a snapshot folder:
     learnable-<step>.msgpack    SFL's learnable set (a buffer whose scores are p (1 - p))
     sfl-window-<step>.msgpack   SFL's newest scored batches, each one's most learnable levels
                                 (`add_learnable`, the Ray driver's continuous schedule)
+    parents-<step>.msgpack      the levels the run's next step edits (ACCEL after a replay
+                                step), in order: the buffer may have evicted some of them
     state-<step>.json           the caller's small state (the curriculum's); written last, so
                                 its presence marks a complete snapshot
 
@@ -88,14 +90,18 @@ class LevelService:
         """The stored levels of these ids (in order)."""
         return self._need_buffer().get(np.asarray(ids, np.int64))
 
+    def stored_levels(self, ids: Any) -> EnvParams | None:
+        """The stored levels of these ids (in order), or None when the buffer no longer holds
+        one of them."""
+        buffer = self._need_buffer()
+        ids = np.asarray(ids, np.int64).reshape(-1)
+        if not np.isin(ids, buffer.ids).all():
+            return None
+        return buffer.get(ids)
+
     def mutate(self, key: jax.Array, levels: EnvParams) -> EnvParams:
         """ACCEL children: `levels.num_edits` edits of each level."""
         return self.generator.mutate(key, to_device(levels))
-
-    def mutate_ids(self, key: jax.Array, parent_ids: Any) -> EnvParams:
-        """ACCEL children of the stored levels `parent_ids` (read and edited in one call, so
-        no insert can evict a parent in between)."""
-        return self.mutate(key, self.get(parent_ids))
 
     def mutate_replay(self, key: jax.Array, replay: Replay) -> EnvParams:
         """ACCEL children of a replay batch's levels (as drawn: a parent evicted since then
@@ -224,11 +230,16 @@ class LevelService:
     # --- snapshots ---------------------------------------------------------------------------
 
     def save(self, folder: str | os.PathLike, step: int, state: dict[str, Any],
-             keep: int | None = None) -> None:
-        """Write the snapshot of step `step` atomically: the buffer, the SFL set and the
-        caller's `state` (JSON-able); then delete all but the newest `keep` snapshots."""
+             keep: int | None = None, parents: EnvParams | None = None) -> None:
+        """Write the snapshot of step `step` atomically: the buffer, the SFL set, `parents`
+        (the levels the next step edits, if any) and the caller's `state` (JSON-able); then
+        delete all but the newest `keep` snapshots."""
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
+        if parents is not None:
+            count = jax.tree.leaves(parents)[0].shape[0]
+            self._level_set(to_host(parents), np.zeros(count)).save(
+                folder / f"parents-{step}.msgpack")
         if self.buffer is not None:
             self.buffer.save(folder / f"buffer-{step}.msgpack")
         if self.learnable is not None:
@@ -259,6 +270,15 @@ class LevelService:
         path = folder / f"sfl-window-{step}.msgpack"
         self.sfl_window = LevelBuffer.load(path, self.template) if path.is_file() else None
         return state
+
+    def load_parents(self, folder: str | os.PathLike, step: int) -> EnvParams | None:
+        """The levels `save` kept as the next step's parents at step `step`, in order; None
+        when that snapshot kept none."""
+        path = Path(folder) / f"parents-{step}.msgpack"
+        if not path.is_file():
+            return None
+        parents = LevelBuffer.load(path, self.template)
+        return parents.get(parents.ids)
 
     def _need_buffer(self) -> LevelBuffer:
         if self.buffer is None:

@@ -318,15 +318,16 @@ class RayRunner(Runner):
     def template(self) -> Any:
         return self.actors.call("learner", "train_state")
 
-    def restore(self, run_dir: Path, train_state: Any, start: int) -> None:
-        self.version = self.run.resume(run_dir, start)
+    def restore(self, run_dir: Path, train_state: Any, start: int) -> str | None:
+        self.version, note = self.run.resume(run_dir, start)
         self.actors.call("learner", "set_train_state", train_state, self.version)
+        return note
 
     def begin(self, start: int) -> None:
         ray, workers, config = self.ray, self.workers, self.config
         self.start = self.reached = start
         self.rate = RateWindow()
-        self.learner = RemoteLearner(ray, workers.learner, self.version, self.actors)
+        self.learner = RemoteLearner(ray, workers.learner, self.actors, self.version)
         placement = workers.placement(ray)
         group = workers.learner if isinstance(workers.learner, LearnerGroup) else None
         self.record.update(mode=self.mode, learner_gpus=workers.gpus,

@@ -1,9 +1,13 @@
 """Resume from the newest intact step of a run folder, and report the integrity of all of them.
 
 A step can be resumed when its orbax checkpoint restores and, for a UED run, its level snapshot
-reads back: `state-<step>.json` parses, and `buffer-<step>.msgpack`, `learnable-<step>.msgpack`
-and `sfl-window-<step>.msgpack` (where they exist) pass the level-buffer format's checks (magic,
-version, SHA-256, every length, dtype and shape).
+reads back: `state-<step>.json` parses, and `buffer-<step>.msgpack`, `learnable-<step>.msgpack`,
+`sfl-window-<step>.msgpack` and `parents-<step>.msgpack` (where they exist) pass the
+level-buffer format's checks (magic, version, SHA-256, every length, dtype and shape), and the
+levels its curriculum state names as the next step's parents (ACCEL after a replay step) are in
+the parents file, one per id, or, in a snapshot without one, in its buffer. A snapshot whose
+buffer no longer holds them (written by an earlier version) resumes without that mutate step:
+`tabx runs check` says so beside the step.
 The checkpoint of a step records the SHA-256 of its snapshot's files: one edited since is
 damaged too. `restore_intact` tries the steps newest first, says in one line what is wrong with
 each step it passes over, and moves the files of every step newer than the one it resumes from
@@ -38,6 +42,7 @@ class StepCheck:
     step: int
     checkpoint: str | None  # None: restores
     snapshot: str | None  # None: reads back (or the run keeps none)
+    note: str | None = None  # what a resume from it has to change to go on
 
     @property
     def intact(self) -> bool:
@@ -86,7 +91,7 @@ def snapshot_problem(levels_dir: Path, step: int, needs_buffer: bool,
     if problem is not None:
         return f"{state}: {problem}"
     for name, required in (("buffer", needs_buffer), ("learnable", False),
-                           ("sfl-window", False)):
+                           ("sfl-window", False), ("parents", False)):
         path = levels_dir / f"{name}-{step}.msgpack"
         if not path.is_file():
             if required:
@@ -186,17 +191,61 @@ def set_aside(run_dir: Path, step: int, stream: TextIO | None) -> Path | None:
     return target
 
 
+def parents_check(levels_dir: Path, step: int, config: TrainConfig
+                  ) -> tuple[str | None, str | None]:
+    """(problem, note) of the levels the snapshot of `step` names as the next step's parents
+    (the curriculum's `pending_parents`): a problem where the parents file does not match the
+    ids, a note where neither it nor the buffer holds them (a resume drops that step)."""
+    from ued.registry import curriculum_for
+
+    curriculum = curriculum_for(config.ued)
+    try:
+        curriculum.load_state_dict(json.loads((levels_dir / f"state-{step}.json").read_text()
+                                              )["curriculum"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None, None  # the state's own problems are `snapshot_problem`'s
+    ids = curriculum.pending_parents()
+    if not ids:
+        return None, None
+    path = levels_dir / f"parents-{step}.msgpack"
+    try:
+        if path.is_file():
+            count = len(LevelBuffer.load(path))
+            if count != len(ids):
+                return (f"{path}: {count} levels, but the curriculum state names {len(ids)} "
+                        f"parents"), None
+            return None, None
+        buffer = levels_dir / f"buffer-{step}.msgpack"
+        held = set(LevelBuffer.load(buffer).ids.tolist()) if buffer.is_file() else set()
+    except (BufferFileError, OSError) as err:
+        return str(err).splitlines()[0], None
+    missing = sorted(set(ids) - held)
+    if not missing:
+        return None, None
+    return None, (f"its buffer no longer holds the replayed levels {missing[:8]} that "
+                  f"{curriculum.name}'s next step mutates, and it keeps no parents file: a "
+                  f"resume drops that mutate step")
+
+
 def check_run(run_dir: Path, checkpoints: Checkpoints, template: Any = None, *,
               snapshots: bool, needs_buffer: bool, key_template: jax.Array | None = None,
-              steps: list[int] | None = None) -> list[StepCheck]:
+              steps: list[int] | None = None, config: TrainConfig | None = None
+              ) -> list[StepCheck]:
     """Every checkpointed step of a run folder (or those of `steps`), oldest first, checked as
     resume would; `template` None reads each checkpoint as it was saved
-    (`Checkpoints.restore_saved`)."""
+    (`Checkpoints.restore_saved`). With `config`, a snapshot's pending parents are checked
+    too (`parents_check`)."""
     levels_dir = run_dir / LEVELS_DIR
-    return [StepCheck(step, checkpoint_problem(checkpoints, template, step, key_template)[0],
-                      snapshot_problem(levels_dir, step, needs_buffer, checkpoints)
-                      if snapshots else None)
-            for step in (checkpoints.all() if steps is None else steps)]
+    checks = []
+    for step in (checkpoints.all() if steps is None else steps):
+        snapshot = (snapshot_problem(levels_dir, step, needs_buffer, checkpoints)
+                    if snapshots else None)
+        note = None
+        if snapshots and snapshot is None and config is not None:
+            snapshot, note = parents_check(levels_dir, step, config)
+        checks.append(StepCheck(step, checkpoint_problem(checkpoints, template, step,
+                                                         key_template)[0], snapshot, note))
+    return checks
 
 
 def _keeps_buffer(config: TrainConfig) -> bool:
@@ -216,7 +265,7 @@ def check_run_folder(run_dir: str | Path) -> list[StepCheck]:
     config = read_run_config(run_dir)
     with open_checkpoints(run_dir, config, create=False) as checkpoints:
         return check_run(run_dir, checkpoints, snapshots=config.ued.enabled,
-                         needs_buffer=_keeps_buffer(config))
+                         needs_buffer=_keeps_buffer(config), config=config)
 
 
 def step_intact(run_dir: Path, checkpoints: Checkpoints, config: TrainConfig, step: int
@@ -224,7 +273,7 @@ def step_intact(run_dir: Path, checkpoints: Checkpoints, config: TrainConfig, st
     """Whether step `step` of a run folder is intact as `tabx runs check` sees it (its
     checkpoint read as saved, and a UED run's level snapshot)."""
     return check_run(run_dir, checkpoints, snapshots=config.ued.enabled,
-                     needs_buffer=_keeps_buffer(config), steps=[step])[0].intact
+                     needs_buffer=_keeps_buffer(config), steps=[step], config=config)[0].intact
 
 
 def resume_point(run_dir: Path, config: TrainConfig) -> tuple[int | None, int]:
@@ -258,7 +307,8 @@ def format_checks(run_dir: str | Path, checks: list[StepCheck]) -> str:
     lines = [f"{run_dir}: {len(checks)} checkpointed steps"]
     for check in checks:
         if check.intact:
-            lines.append(f"  step {check.step}: intact")
+            lines.append(f"  step {check.step}: intact" + (f" ({check.note})" if check.note
+                                                           else ""))
             continue
         parts = [f"{what}: {problem}" for what, problem in (("checkpoint", check.checkpoint),
                                                             ("snapshot", check.snapshot))
@@ -271,5 +321,5 @@ def format_checks(run_dir: str | Path, checks: list[StepCheck]) -> str:
 
 
 __all__ = ["SET_ASIDE_DIR", "StepCheck", "check_run", "check_run_folder", "format_checks",
-           "restore_intact", "resume_point", "set_aside", "state_problem", "step_intact",
-           "what_resume_does"]
+           "parents_check", "restore_intact", "resume_point", "set_aside", "state_problem",
+           "step_intact", "what_resume_does"]

@@ -170,8 +170,9 @@ class Runner(abc.ABC):
         """A train state shaped as the checkpoints' (to restore into)."""
 
     @abc.abstractmethod
-    def restore(self, run_dir: Path, train_state: Any, start: int) -> None:
-        """Continue from the checkpoint of step `start`, whose train state is `train_state`."""
+    def restore(self, run_dir: Path, train_state: Any, start: int) -> str | None:
+        """Continue from the checkpoint of step `start`, whose train state is `train_state`;
+        returns a note on what had to change to go on (shown to the user), or None."""
 
     def begin(self, start: int) -> None:
         """Before the first step of this call, restored or not (`start`: the first step)."""
@@ -254,7 +255,10 @@ def train_loop(runner: Runner, run_dir: Path, *, resume: bool, max_updates: int 
     if restored is not None:
         checkpoints.reload()
         train_state, key, start = restored
-        runner.restore(run_dir, train_state, start)
+        note = runner.restore(run_dir, train_state, start)
+        if note is not None and stream is not None:
+            stream.write(f"resume: {note}\n")
+            stream.flush()
     runner.begin(start)
     total = config.learner.num_updates
     stop = total if max_updates is None else min(total, start + max_updates)

@@ -6,7 +6,8 @@ level service for, what to play, what to commit.
     NEW     levels = service.fresh()      -> LearnerWorker.train (PLR, DR) or Explorer (Robust PLR,
                                              ACCEL) -> scores -> service.insert
     REPLAY  replay = service.replay()     -> LearnerWorker.train -> scores -> service.update
-    MUTATE  children = mutate(last replay)-> Explorer -> scores -> service.insert (MUTATION)
+    MUTATE  children = service.mutate(the last replay batch's levels, as drawn)
+                                          -> Explorer -> scores -> service.insert (MUTATION)
     SFL     [every sfl_update_freq steps: score sfl_num_batches x sfl_batch_size fresh levels
              by learnability with the Explorer, keep the top sfl_top_k]
             levels = fresh half + learnable half -> LearnerWorker.train
@@ -22,7 +23,11 @@ in, not every sfl_update_freq steps).
 
 A step that scores new or mutated levels asks the level service for them with a
 `LevelRequest`: the service call that makes them, and the source and parents the buffer files
-them under when they are committed.
+them under when they are committed. ACCEL's children are made from the replayed levels
+themselves, never looked up by id: on the asynchronous schedule Explorer results committed
+between the replay step and the mutate step may evict a parent from the buffer. For the same
+reason a snapshot taken between the two steps holds the parents as levels
+(`parents-<step>.msgpack`).
 """
 
 from __future__ import annotations
@@ -36,7 +41,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from level_buffer import Source
+from level_buffer import Replay, Source
+from level_buffer.fileformat import BufferFileError
 from tabx import constants as C
 from tabx.params import EnvParams, stack_levels
 from ued.config import ConfigError, TrainConfig
@@ -97,7 +103,7 @@ class LevelRequest:
     """New levels a step asks the level service for: the call that makes them (`method` of
     the service with `args`), and how the buffer files them when they are committed."""
 
-    method: str  # "fresh" (NEW) or "mutate_ids" (MUTATE)
+    method: str  # "fresh" (NEW) or "mutate" (MUTATE; the continuous schedule: "mutate_replay")
     args: tuple
     source: Source
     parent_ids: np.ndarray | int = -1  # MUTATE: the parents' buffer ids; -1: none
@@ -157,15 +163,18 @@ class UEDRun:
         curriculum = self.curriculum
         branch = self.next_branch()
         learns = curriculum.learns(branch)
-        replay_ids = None
+        replay = None
         if learns:
-            metrics, levels, replay_ids = schedule.learn(
+            metrics, levels, replay = schedule.learn(
                 step, lambda: self.learning_step(learner, branch, step, keys))
         else:
             metrics, levels = schedule.explore(learner, step,
                                                self.level_request(branch, k_levels, k_edit),
                                                k_roll)
-        curriculum.observe(branch, replay_ids)
+        if replay is None:
+            curriculum.observe(branch)
+        else:
+            curriculum.observe(branch, replay.ids, replay.levels)
         if metrics is not None:
             metrics = self.step_metrics(metrics, branch, learns, learner.version)
         return branch, metrics, levels
@@ -185,13 +194,15 @@ class UEDRun:
 
     def level_request(self, branch: Branch, k_levels: jax.Array, k_edit: jax.Array
                       ) -> LevelRequest:
-        """Fresh levels (NEW) or ACCEL children of the last replay batch (MUTATE)."""
+        """Fresh levels (NEW) or ACCEL children of the last replay batch's levels (MUTATE)."""
         if branch == Branch.NEW:
             return LevelRequest("fresh", (k_levels, self.config.learner.num_envs),
                                 Source.RANDOM)
         assert branch == Branch.MUTATE, branch
-        parent_ids = np.asarray(self.curriculum.last_replay_ids, np.int64)
-        return LevelRequest("mutate_ids", (k_edit, parent_ids), Source.MUTATION, parent_ids)
+        curriculum = self.curriculum
+        parent_ids = np.asarray(curriculum.pending_parents(), np.int64)
+        return LevelRequest("mutate", (k_edit, curriculum.last_replay_levels), Source.MUTATION,
+                            parent_ids)
 
     def commit(self, request: LevelRequest, levels: Any, scores: Any, best: Any,
                version: int) -> None:
@@ -217,8 +228,9 @@ class UEDRun:
         return metrics, levels
 
     def learning_step(self, learner: LearnerWorker, branch: Branch, step: int, keys: jax.Array
-                      ) -> tuple[dict[str, Any], EnvParams, np.ndarray | None]:
-        """A step that trains the policy: (metrics, levels played, replayed ids or None)."""
+                      ) -> tuple[dict[str, Any], EnvParams, Replay | None]:
+        """A step that trains the policy: (metrics, levels played, the replay batch or
+        None)."""
         k_levels, k_roll, k_edit = keys
         n, score = self.config.learner.num_envs, self.config.ued.score
         service = self.service
@@ -229,7 +241,7 @@ class UEDRun:
             metrics, scores, best = learner.train_scored(levels, k_roll, score,
                                                          replay.max_returns)
             service.update(replay.ids, scores, best, version)
-            return metrics, levels, replay.ids
+            return metrics, levels, replay
         if branch == Branch.SFL:
             assert isinstance(self.curriculum, SFL)
             if self.curriculum.needs_refresh(step) or not service.has_learnable():
@@ -324,18 +336,50 @@ class UEDRun:
         return int(state["version"])
 
     def save(self, run_dir: Path, done: int, learner: LearnerWorker) -> None:
-        """The level snapshot of step `done` in `RUN_DIR/levels/`. Written before the
-        checkpoint of the same step: a checkpoint without one cannot be resumed."""
+        """The level snapshot of step `done` in `RUN_DIR/levels/`, with the levels the next
+        step edits (ACCEL after a replay step). Written before the checkpoint of the same
+        step: a checkpoint without one cannot be resumed."""
+        curriculum = self.curriculum
+        parents = curriculum.last_replay_levels if curriculum.pending_parents() else None
         self.service.save(str(run_dir / LEVELS_DIR), done, self.state(learner),
-                          keep=self.config.run.keep_checkpoints)
+                          keep=self.config.run.keep_checkpoints, parents=parents)
 
-    def resume(self, run_dir: Path, start: int) -> int:
-        """Continue from the level snapshot of step `start`; the policy version it was taken
-        at. ConfigError when it is missing or does not fit this run."""
+    def resume(self, run_dir: Path, start: int) -> tuple[int, str | None]:
+        """Continue from the level snapshot of step `start`: (the policy version it was taken
+        at, a note on what had to change to go on, or None). ConfigError when it is missing or
+        does not fit this run."""
+        folder = str(run_dir / LEVELS_DIR)
         try:
-            return self.load_state(self.service.load(str(run_dir / LEVELS_DIR), start))
-        except (FileNotFoundError, ConfigError) as err:
+            version = self.load_state(self.service.load(folder, start))
+            return version, self.restore_parents(folder, start)
+        except (FileNotFoundError, ConfigError, BufferFileError) as err:
             raise ConfigError(f"{run_dir}: cannot resume from step {start}: {err}") from None
+
+    def restore_parents(self, folder: str, start: int) -> str | None:
+        """The levels the next step edits, from the snapshot's parents file or, in a snapshot
+        that has none, from its buffer. When the buffer no longer holds them (a snapshot that
+        an earlier version took between an ACCEL replay step and its mutate step) the mutate
+        step is dropped: the note says so."""
+        curriculum = self.curriculum
+        ids = curriculum.pending_parents()
+        if not ids:
+            return None
+        levels = self.service.load_parents(folder, start)
+        if levels is not None:
+            count = jax.tree.leaves(levels)[0].shape[0]
+            if count != len(ids):
+                raise ConfigError(f"{folder}/parents-{start}.msgpack: {count} levels, but the "
+                                  f"curriculum state names {len(ids)} parents")
+        else:
+            levels = self.service.stored_levels(ids)
+        if levels is None:
+            curriculum.drop_pending()
+            return (f"the level snapshot of step {start} names replayed levels (ids "
+                    f"{sorted(set(ids))[:8]}) that its buffer no longer holds and keeps no "
+                    f"parents file: {curriculum.name}'s mutation step after that replay is "
+                    f"dropped and the run goes on with the next step's own decision")
+        curriculum.last_replay_levels = levels
+        return None
 
 
 def level_summary(levels: EnvParams) -> dict[str, float]:
