@@ -247,8 +247,12 @@ def test_a_call_lost_too_often_stops_the_run_and_an_optional_one_is_given_up():
     assert actors.deaths.count == {"explorer-0": 6}
 
 
-def test_a_learner_killed_by_the_memory_monitor_stops_the_run_with_the_resume_command(
+def test_a_learner_killed_by_the_memory_monitor_restarts_the_run_then_stops_with_what_resume_does(
         tmp_path, monkeypatch, capsys):
+    """A learner the memory monitor kills at its first call, every time (a stand-in): the
+    run starts again from step 0 (it has no checkpoint) `ray.learner_restarts` times (2 by
+    default), each time saying so, then stops in one line naming the learner, the cause, the
+    spent budget and what `--resume` will do."""
     import workers.ray_driver as ray_driver
     from tabx_ued.cli import main
     from ued.run_folder import create_run_dir
@@ -268,10 +272,16 @@ def test_a_learner_killed_by_the_memory_monitor_stops_the_run_with_the_resume_co
     monkeypatch.setattr(ray_driver, "start_workers", lambda *args: workers)
     config = ued_config("robust_plr", **{"ray.enabled": "true", "ray.explorers": 0})
     run_dir = create_run_dir(config, tmp_path / "run")
-    assert main(["train", "--resume", str(run_dir), "--quiet"]) == 2
+    assert main(["train", "--resume", str(run_dir), "--ray", "--quiet"]) == 2
     err = capsys.readouterr().err
-    assert "learner died (Task was killed due to the node running low on memory.)" in err
-    assert f"continue from the last checkpoint with: tabx train --resume {run_dir}" in err
+    died = ("learner died (Task was killed due to the node running low on memory.) while the "
+            "run started")
+    for n in (1, 2):
+        assert (f"ray: {died}: restart {n} of 2 (ray.learner_restarts): the run has no "
+                f"checkpoint yet: it starts again from step 0; 0 steps lost (0 in all)") in err
+    assert err.strip().splitlines()[-1] == (
+        f"tabx train: error: {run_dir}: {died}; ray.learner_restarts (2) spent; no checkpoint "
+        f"yet: tabx train --resume {run_dir} starts it again from step 0")
     assert "Traceback" not in err and "unexpected" not in err
     record = json.loads((run_dir / RAY_RECORD).read_text())
     assert record["status"] == "stopped" and "learner died" in record["error"]

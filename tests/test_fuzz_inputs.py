@@ -743,3 +743,42 @@ def test_envs_that_cannot_fit_in_memory_are_refused_before_the_run_folder(tmp_pa
                      r"100000000 envs x 512 steps need at least \d+\.\d GiB .*; this machine's "
                      r"\w+ memory is \d+\.\d GiB")
     assert not (tmp_path / "runs").exists()
+
+
+def free_port() -> int:
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+# An address a run cannot join (`RAY_ADDRESS`, else `ray.address`): one line naming the setting
+# the user set, at once, before a run folder exists (Ray itself would fail with a cut
+# ValueError, or retry a closed `ray://` port for half a minute and blame the token).
+ADDRESSES = {
+    ("RAY_ADDRESS", "http://127.0.0.1:8265"): r"RAY_ADDRESS: 'http://127\.0\.0\.1:8265' is a "
+                                               r"dashboard's \(HTTP\) address",
+    ("RAY_ADDRESS", "ray://127.0.0.1:{port}"): r"RAY_ADDRESS: 'ray://127\.0\.0\.1:\d+' is a Ray "
+                                               r"Client address",
+    ("RAY_ADDRESS", "garbage"): r"RAY_ADDRESS: expected 'auto' or HOST:PORT .*'garbage'",
+    ("RAY_ADDRESS", "127.0.0.1:{port}"): r"RAY_ADDRESS: no Ray head answers at 127\.0\.0\.1:",
+    ("ray.address", "garbage"): r"ray\.address: expected 'auto' or HOST:PORT.*'garbage'",
+}
+
+
+@pytest.mark.parametrize("setting,address", list(ADDRESSES), ids=lambda v: v.split(":")[0])
+def test_an_address_no_run_can_join_is_one_line_naming_its_setting(setting, address, tmp_path,
+                                                                   capsys, monkeypatch):
+    config = tmp_path / "tiny.yaml"
+    config.write_text(ued_config("robust_plr").to_yaml())
+    value = address.format(port=free_port())
+    argv = ["train", str(config), "--ray", "--run-dir", str(tmp_path / "never"), "--quiet"]
+    if setting == "RAY_ADDRESS":
+        monkeypatch.setenv("RAY_ADDRESS", value)
+    else:
+        monkeypatch.delenv("RAY_ADDRESS", raising=False)
+        argv.append(f"ray.address={value}")
+    code, out, err = run_cli(capsys, argv)
+    assert_one_error(code, out, err, argv, f"{setting}: ", ADDRESSES[setting, address])
+    assert not (tmp_path / "never").exists()

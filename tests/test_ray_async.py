@@ -196,6 +196,7 @@ def test_a_long_run_holds_no_more_object_refs_at_its_end_and_can_be_inspected_wh
     assert status.returncode == 0, status.stderr[-2000:]
     assert f"{run_dir}: running; asynchronous schedule; step 3 of 40" in status.stdout
     assert "explorer-0" in status.stdout and "learner" in status.stdout
+    assert "env steps/s over the last " in status.stdout and ", explored " in status.stdout
     # Over: the record says so, and the live buffer points to the snapshots.
     record = json.loads((run_dir / RAY_RECORD).read_text())
     assert record["status"] == "finished" and record["steps"] == [0, 40]

@@ -238,6 +238,38 @@ def test_a_finished_run_prints_a_summary(tmp_path):
     assert run_summary_lines(tmp_path / "nothing").startswith("summary of")
 
 
+def test_a_ray_run_resumed_without_ray_continues_on_the_local_driver(capsys, tmp_path):
+    """`tabx train --resume RUN` of a run trained with `--ray`: the local driver continues it
+    (Ray is not started, no `ray.json` is written), as `ray.enabled=false` says too; the run's
+    own config.yaml keeps its `ray:` section. The run folder is made by the local driver from
+    a config with `ray.enabled: true`: the same files a Ray run leaves."""
+    import io
+
+    from test_ued_train import ued_config
+
+    from ued.run_folder import read_run_config
+    from workers.local import LocalDriver
+    from workers.ray_driver import RAY_RECORD
+    from workers.train import train
+
+    config = ued_config("robust_plr", **{"ray.enabled": "true", "run.checkpoint_every": 1})
+    run = train(config, run_dir=tmp_path / "run", driver=LocalDriver(), stream=io.StringIO(),
+                max_updates=1)
+    assert read_run_config(run).ray.enabled
+    code, _, err = run_cli(capsys, "train", "--resume", str(run), "--max-updates", "1")
+    assert code == 0, err[-2000:]
+    assert "resuming robust_plr" in err and " on Ray " not in err
+    code, _, err = run_cli(capsys, "train", "--resume", str(run), "--max-updates", "1",
+                           "ray.enabled=false")
+    assert code == 0, err[-2000:]
+    assert not (run / RAY_RECORD).exists()
+    code, _, err = run_cli(capsys, "train", "--resume", str(run), "--ray", "ray.enabled=false")
+    assert code == 2 and "ray.enabled=false: --ray resumes the run on Ray" in err
+    with Checkpoints(run / CHECKPOINT_DIR) as checkpoints:
+        assert checkpoints.latest() == 3
+    assert read_run_config(run).ray.enabled  # config.yaml is the run's own
+
+
 def test_an_error_raised_in_a_ray_actor_is_shown_by_its_cause():
     # An Explorer's call whose argument was a level-service call that raised: Ray wraps the
     # service's error in the Explorer's, each text a coloured traceback.

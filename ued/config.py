@@ -353,7 +353,9 @@ class RaySection:
     schedule: str = "sequential"
     learner_gpus: float = -1.0  # GPUs of the learner actor; -1: one if the cluster has any
     learners: int = 1  # learner actors that run each update together (a JAX process group)
-    learner_restarts: int = 0  # times a run stopped by its lost learner resumes itself
+    # times a run stopped by its lost learner (or any actor lost at start-up) starts again
+    # from its newest intact checkpoint (0: it stops, with the --resume command)
+    learner_restarts: int = 2
     learner_share_cores: bool = False  # group members on one node pin to their share of it
     num_cpus: int = 0  # CPUs of a Ray started here (0: Ray's own count)
     object_store_mb: int = 512  # object store of a Ray started here

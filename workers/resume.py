@@ -127,6 +127,10 @@ def restore_intact(run_dir: Path, checkpoints: Checkpoints, template: Any, *,
     steps = checkpoints.all()
     if not steps:
         # Killed before its first checkpoint (perhaps after that step's snapshot): start over.
+        if stream is not None:
+            stream.write(f"resume: {run_dir} has no checkpoint yet: the run starts again from "
+                         f"step 0\n")
+            stream.flush()
         set_aside(run_dir, 0, stream)
         return None
     levels_dir = run_dir / LEVELS_DIR
@@ -271,6 +275,30 @@ def step_intact(run_dir: Path, checkpoints: Checkpoints, config: TrainConfig, st
                      needs_buffer=_keeps_buffer(config), steps=[step], config=config)[0].intact
 
 
+def resume_point(run_dir: Path, config: TrainConfig) -> tuple[int | None, int]:
+    """(the step `tabx train --resume` continues from: the newest intact, as `tabx runs
+    check` sees it, None where none is; the number of checkpoints)."""
+    from ued.run_folder import open_checkpoints
+
+    with open_checkpoints(run_dir, config, create=False) as checkpoints:
+        steps = checkpoints.all()
+        for step in reversed(steps):
+            if step_intact(run_dir, checkpoints, config, step):
+                return step, len(steps)
+    return None, len(steps)
+
+
+def what_resume_does(run_dir: Path, config: TrainConfig) -> str:
+    """What `tabx train --resume RUN_DIR` will do, in words (`resume_point`)."""
+    step, saved = resume_point(run_dir, config)
+    if step is not None:
+        return f"tabx train --resume {run_dir} continues it from its checkpoint at step {step}"
+    if saved:
+        return (f"no checkpoint of it is intact (tabx runs check {run_dir}): tabx train "
+                f"--resume {run_dir} cannot continue it")
+    return f"no checkpoint yet: tabx train --resume {run_dir} starts it again from step 0"
+
+
 def format_checks(run_dir: str | Path, checks: list[StepCheck]) -> str:
     """`tabx runs check`: a line per step, then the step `--resume` would continue from."""
     if not checks:
@@ -292,4 +320,5 @@ def format_checks(run_dir: str | Path, checks: list[StepCheck]) -> str:
 
 
 __all__ = ["SET_ASIDE_DIR", "StepCheck", "check_run", "check_run_folder", "format_checks",
-           "parents_check", "restore_intact", "set_aside", "state_problem", "step_intact"]
+           "parents_check", "restore_intact", "resume_point", "set_aside", "state_problem",
+           "step_intact", "what_resume_does"]

@@ -37,7 +37,7 @@ import numpy as np
 
 from tabx.errors import UserError
 from ued.config import TrainConfig
-from ued.progress import Progress, ThroughputClock, log_update
+from ued.progress import Played, Progress, ThroughputClock, log_update
 from ued.run_folder import EVENTS_DIR, checkpoint_metadata, open_checkpoints
 from ued.tensorboard import SummaryWriter
 from workers.driver import Callback
@@ -111,6 +111,7 @@ class Report:
     total: int  # steps of the whole run
     env_steps: int  # env steps of one step (all seeds)
     output: Output
+    played: Played | None = None  # the clock's running totals: the progress line's window
 
     def show(self, metrics: dict[str, Any], train_state: Any, *, extra: str = "",
              writer: bool = True, callback: bool = True) -> None:
@@ -120,7 +121,8 @@ class Report:
         out = self.output
         log_update(out.writer if writer else None, out.bar, out.callback if callback else None,
                    self.done, train_state, metrics, self.env_steps, self.rate, self.total,
-                   self.last, extra=extra, eta_steps_per_s=self.eta_steps_per_s)
+                   self.last, extra=extra, eta_steps_per_s=self.eta_steps_per_s,
+                   played=self.played)
 
 
 class Runner(abc.ABC):
@@ -289,7 +291,7 @@ def train_loop(runner: Runner, run_dir: Path, *, resume: bool, max_updates: int 
                 timing, rate = clock.read(done, trained if runner.explores else None,
                                           runner.background_steps())
                 runner.log(metrics, Report(done, last, timing, rate, clock.eta_steps_per_s,
-                                           total, runner.env_steps, output))
+                                           total, runner.env_steps, output, clock.played))
             every = runner.eval_every
             runner.evaluate(done, bool(every) and (done % every == 0 or last), output)
             if checkpoint_due or interrupt.requested:
