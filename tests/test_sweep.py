@@ -137,8 +137,9 @@ points:
     assert {p.name for p in report.iterdir()} >= {"report.md", "results.csv", "trials.csv",
                                                   "curves-all.png"}
     rows = (report / "results.csv").read_text().splitlines()
-    assert rows[0].startswith("run.log_every,env.scenario,suite,seeds,mean") and len(rows) == 3
-    assert all(",train,2," in row for row in rows[1:])
+    assert rows[0].startswith("run.log_every,env.scenario,table,suite,opponent,seeds,mean")
+    # one cell per run.log_every (the training win rate over 2 seeds) and its `mean` row
+    assert len(rows) == 5 and all(",train,,,2," in row for row in rows[1:])
 
 
 def _records(folder: Path) -> dict[str, dict]:
