@@ -660,6 +660,22 @@ def _blame_override(err: ConfigError, source: str, overrides: Sequence[str]) -> 
     return err
 
 
+def check_ray_overrides(config: TrainConfig, overrides: Sequence[str]) -> None:
+    """Refuse overrides of the `ray:` section for a run that is not on Ray (`ray.enabled`
+    false): the local driver reads none of them, so they would be dropped without a word."""
+    if config.ray.enabled:
+        return
+    paths = _field_paths()
+    for item in overrides:
+        key = item.partition("=")[0].strip()
+        key = paths[key][0] if "." not in key and len(paths.get(key, [])) == 1 else key
+        if key.startswith("ray.") and key != "ray.enabled":
+            shown = repr(item) if len(item) <= 100 else f"{item[:80]!r}..."
+            raise ConfigError(f"override {shown}: {key}: a setting of runs on Ray, and this run "
+                              f"is not on Ray (ray.enabled is false): train on Ray (tabx train "
+                              f"--ray, or ray.enabled=true), or drop {key}")
+
+
 def read_config_file(path: str | Path) -> Any:
     """The parsed YAML of a config file (strict: `ued.yaml_reader`); ConfigError naming the
     file when it cannot be read or parsed."""
@@ -741,5 +757,5 @@ def apply_overrides(data: Any, overrides: Sequence[str], source: str = "config")
 
 __all__ = ["PPO_ONLY_FIELDS", "Q_LEARNER_SETTINGS", "TEAMS", "UED_SCORES",
            "ConfigError", "EnvSection", "LearnerConfig", "QLearningConfig", "RaySection",
-           "RunSection", "TrainConfig", "UEDSection", "apply_overrides", "config_from_dict",
-           "load_config", "read_config_file"]
+           "RunSection", "TrainConfig", "UEDSection", "apply_overrides", "check_ray_overrides",
+           "config_from_dict", "load_config", "read_config_file"]
