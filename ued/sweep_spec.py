@@ -51,6 +51,7 @@ from ued.config import (
     ConfigError,
     TrainConfig,
     apply_overrides,
+    check_levels_admitted,
     check_ray_overrides,
     config_from_dict,
     read_config_file,
@@ -376,6 +377,7 @@ def _spec_from_dict(data: Any, path: Path, extra: tuple[str, ...]) -> SweepSpec:
                 apply_overrides(base_data, trial_overrides, source=str(resolved)),
                 source=str(resolved))
             check_ray_overrides(config, trial_overrides)
+            check_levels_admitted(config)
         except ConfigError as err:
             raise ConfigError(f"{where}, trial {trial_name}: {err}") from None
         trials.append(Trial(trial_name, tuple(labels), config, trial_overrides, str(resolved)))

@@ -111,16 +111,36 @@ _HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 
 _SETTINGS_FRAME = 4
 
 
-def check_reachable(address: str, timeout_s: float = 5.0) -> None:
-    """Fail fast, in one line, where no Ray head answers at HOST:PORT: nothing listens, or
-    something that is not a gRPC server (a Ray head's GCS speaks gRPC)."""
-    if address in ("auto", "local") or "://" in address:
+def _host_port(target: str, address: str, name: str) -> tuple[str, int]:
+    """(host, port) of HOST:PORT, [IPv6]:PORT included; a ConfigError naming `name`."""
+    host, sep, port = target.rpartition(":")
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+    if not sep or not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+        raise ConfigError(f"{name}: expected 'auto', HOST:PORT (a port in 1..65535) or "
+                          f"ray://HOST:PORT, got {address!r}")
+    return host, int(port)
+
+
+def check_reachable(address: str, timeout_s: float = 5.0, name: str | None = None) -> None:
+    """Fail fast, in one line naming `name` (default: `ray.address`, or `RAY_ADDRESS` where
+    the address is that variable's), where no Ray head answers at HOST:PORT (or no Ray Client
+    server at ray://HOST:PORT): nothing listens, or something that is not a gRPC server (a Ray
+    head's GCS and the Ray Client server speak gRPC). Any other scheme (the dashboard's
+    http://) is refused: Ray would retry it for minutes, or fail in a text of its own."""
+    if name is None:
+        name = "RAY_ADDRESS" if os.environ.get("RAY_ADDRESS") == address else "ray.address"
+    if address in ("auto", "local"):
         return
-    host, sep, port = address.rpartition(":")
-    if not sep or not port.isdigit():
-        raise ConfigError(f"ray.address: expected 'auto' or HOST:PORT, got {address!r}")
+    scheme, sep, rest = address.partition("://")
+    if sep and scheme != "ray":
+        raise ConfigError(f"{name}: {address!r} is not a Ray address ({scheme}:// is the "
+                          f"dashboard's, for `ray job submit`); give 'auto', the head's "
+                          f"HOST:PORT (ray start --head prints it) or ray://HOST:PORT")
+    host, port = _host_port(rest if sep else address, address, name)
+    server = "Ray Client server" if sep else "Ray head"
     try:
-        with socket.create_connection((host, int(port)), timeout=timeout_s) as sock:
+        with socket.create_connection((host, port), timeout=timeout_s) as sock:
             sock.sendall(_HTTP2_PREFACE)
             answer = b""
             while len(answer) < 9:
@@ -130,12 +150,14 @@ def check_reachable(address: str, timeout_s: float = 5.0) -> None:
                 answer += chunk
     except OSError as err:
         if not isinstance(err, TimeoutError) and not isinstance(err, socket.timeout):
-            raise ConfigError(f"ray.address: no Ray head answers at {address} "
-                              f"({err.strerror or err}); start one there (ray start --head "
-                              f"--port={port}) or give another address") from None
+            start = (f"ray start --head --port={port}" if not sep else
+                     f"ray start --head --ray-client-server-port={port}")
+            raise ConfigError(f"{name}: no {server} answers at {address} "
+                              f"({err.strerror or err}); start one there ({start}) or give "
+                              f"another address") from None
         answer = b""
     if len(answer) < 9 or answer[3] != _SETTINGS_FRAME:
-        raise ConfigError(f"ray.address: {address} is not a Ray head (something listens there "
+        raise ConfigError(f"{name}: {address} is not a {server} (something listens there "
                           f"but does not speak Ray's gRPC); give the head's GCS address "
                           f"(ray start --head prints it)") from None
 

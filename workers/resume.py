@@ -24,6 +24,7 @@ import jax
 
 from level_buffer import LevelBuffer
 from level_buffer.fileformat import BufferFileError
+from tabx.files import not_a_file
 from ued.checkpoint import CheckpointError, Checkpoints
 from ued.config import ConfigError, TrainConfig
 from ued.errors import gist
@@ -38,6 +39,7 @@ class StepCheck:
     step: int
     checkpoint: str | None  # None: restores
     snapshot: str | None  # None: reads back (or the run keeps none)
+    checked: bool = True  # the checkpoint's arrays compared with digests recorded at saving
 
     @property
     def intact(self) -> bool:
@@ -77,8 +79,11 @@ def snapshot_problem(levels_dir: Path, step: int, needs_buffer: bool,
     """What keeps the level snapshot of `step` from reading back, or None; with `checkpoints`,
     also a snapshot file changed since checkpoint `step` recorded its digest."""
     state = levels_dir / f"state-{step}.json"
-    if not state.is_file():
+    kind = not_a_file(state)
+    if kind == "missing":
         return f"{state}: missing (the snapshot of step {step} is incomplete)"
+    if kind is not None:  # never opened: a device or FIFO could block or never end
+        return f"{state}: {kind}"
     try:
         problem = state_problem(json.loads(state.read_text()))
     except (OSError, UnicodeDecodeError, ValueError, RecursionError) as err:
@@ -88,10 +93,13 @@ def snapshot_problem(levels_dir: Path, step: int, needs_buffer: bool,
     for name, required in (("buffer", needs_buffer), ("learnable", False),
                            ("sfl-window", False)):
         path = levels_dir / f"{name}-{step}.msgpack"
-        if not path.is_file():
+        kind = not_a_file(path)
+        if kind == "missing":
             if required:
                 return f"{path}: missing"
             continue
+        if kind is not None:
+            return f"{path}: {kind}"
         try:
             LevelBuffer.load(path)
         except (BufferFileError, OSError) as err:
@@ -191,7 +199,7 @@ def check_run(run_dir: Path, checkpoints: Checkpoints, template: Any = None, *,
     levels_dir = run_dir / LEVELS_DIR
     return [StepCheck(step, checkpoint_problem(checkpoints, template, step, key_template)[0],
                       snapshot_problem(levels_dir, step, needs_buffer, checkpoints)
-                      if snapshots else None)
+                      if snapshots else None, checkpoints.has_digests(step))
             for step in (checkpoints.all() if steps is None else steps)]
 
 
@@ -230,7 +238,10 @@ def format_checks(run_dir: str | Path, checks: list[StepCheck]) -> str:
     lines = [f"{run_dir}: {len(checks)} checkpointed steps"]
     for check in checks:
         if check.intact:
-            lines.append(f"  step {check.step}: intact")
+            lines.append(f"  step {check.step}: intact" + (
+                "" if check.checked else " as far as it was checked: the checkpoint records "
+                "no digests (its _CHECKPOINT_METADATA is missing or unreadable), so its array "
+                "values are unchecked"))
             continue
         parts = [f"{what}: {problem}" for what, problem in (("checkpoint", check.checkpoint),
                                                             ("snapshot", check.snapshot))

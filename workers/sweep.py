@@ -160,8 +160,7 @@ def connect(spec: SweepSpec, address: str | None, num_cpus: int | None) -> tuple
     if address:
         from workers.ray_start import check_reachable
 
-        if address != "auto":
-            check_reachable(address)
+        check_reachable(address, name="--address")
         kwargs["address"] = address
     else:
         kwargs.update(address="local", include_dashboard=False)
