@@ -51,6 +51,7 @@ SIGHT_ANGLE = math.pi / 2
 TURN_RATE = math.pi / 6  # radians per second of simulated time; a turn action rotates rate*dt
 BOUNDARY_DAMAGE_RATE = 0.1  # fraction of max health per second while touching the wall
 DEFAULT_MAX_STEPS = 512
+MAX_STEPS = 2**31 - 1  # episode limit: the step counter is int32
 
 
 @dataclass(frozen=True)

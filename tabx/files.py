@@ -31,6 +31,26 @@ class OutputError(UserError):
     """An output path that cannot take the file (a directory, a block device, a full device)."""
 
 
+def not_a_file(path: str | os.PathLike) -> str | None:
+    """None where `path` is a regular file (through any links), else what it is, for a
+    message: "missing", "a broken symbolic link", "a folder", "a character device", ..."""
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return "a broken symbolic link" if os.path.islink(path) else "missing"
+    except OSError as err:
+        return f"unreadable ({err.strerror or err})"
+    if stat.S_ISREG(mode):
+        return None
+    for test, kind in ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO"),
+                       (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                       (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return f"{kind}, not a file" + (" (through a symbolic link)"
+                                            if os.path.islink(path) else "")
+    return "not a regular file"
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     """Write `data` to `path` atomically; the old file (if any) stays intact until the rename.
 
@@ -143,4 +163,5 @@ def atomic_write_json(path: str | os.PathLike, obj: Any, indent: int = 2) -> Pat
     return atomic_write_text(path, json.dumps(obj, indent=indent) + "\n")
 
 
-__all__ = ["OutputError", "atomic_write_bytes", "atomic_write_json", "atomic_write_text"]
+__all__ = ["OutputError", "atomic_write_bytes", "atomic_write_json", "atomic_write_text",
+           "not_a_file"]

@@ -44,8 +44,10 @@ class EnvConfig:
                 raise ValueError(f"EnvConfig.{name} must be an integer >= 1, got {value!r}")
         if not isinstance(self.max_zones, int) or self.max_zones < 0:
             raise ValueError(f"EnvConfig.max_zones must be an integer >= 0, got {self.max_zones!r}")
-        if not isinstance(self.max_steps, int) or self.max_steps < 1:
-            raise ValueError(f"EnvConfig.max_steps must be an integer >= 1, got {self.max_steps!r}")
+        if (not isinstance(self.max_steps, int) or isinstance(self.max_steps, bool)
+                or not 1 <= self.max_steps <= C.MAX_STEPS):
+            raise ValueError(f"EnvConfig.max_steps must be an integer in [1, 2**31 - 1] (the "
+                             f"step counter is int32), got {self.max_steps!r}")
 
     @property
     def num_units(self) -> int:

@@ -18,7 +18,7 @@ def non_negative_ints(text: str) -> list[int]:
     return values
 
 
-def int_list(minimum: int) -> Callable[[str], list[int]]:
+def int_list(minimum: int, maximum: int | None = None) -> Callable[[str], list[int]]:
     def parse(text: str) -> list[int]:
         parts = [p.strip() for p in text.split(",")]
         if not text.strip() or any(not p for p in parts):
@@ -33,7 +33,26 @@ def int_list(minimum: int) -> Callable[[str], list[int]]:
         if bad:
             raise argparse.ArgumentTypeError(
                 f"every value must be >= {minimum}, got {', '.join(map(str, bad))}")
+        bad = [v for v in values if maximum is not None and v > maximum]
+        if bad:
+            raise argparse.ArgumentTypeError(
+                f"every value must be <= {maximum}, got {', '.join(map(str, bad))}")
         return values
+
+    return parse
+
+
+def seconds_up_to(maximum: float) -> Callable[[str], float]:
+    """A duration in seconds: a finite number in (0, `maximum`]."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}"
+                                             ) from None
+        if not 0 < value <= maximum:  # NaN fails too
+            raise argparse.ArgumentTypeError(f"expected seconds in (0, {maximum:g}], got {text}")
+        return value
 
     return parse
 
@@ -67,4 +86,5 @@ def controllers(text: str) -> list[str]:
     return parts
 
 
-__all__ = ["controllers", "int_at_least", "int_list", "non_negative_ints", "team_sizes"]
+__all__ = ["controllers", "int_at_least", "int_list", "non_negative_ints", "seconds_up_to",
+           "team_sizes"]

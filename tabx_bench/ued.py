@@ -41,13 +41,19 @@ import numpy as np
 
 from tabx.errors import UserError
 from tabx.files import atomic_write_text
-from tabx_bench.arguments import int_at_least, int_list
+from tabx_bench.arguments import int_at_least, int_list, seconds_up_to
 from ued.config import ConfigError, TrainConfig, load_config
 from ued.experiment import learner_for
 from workers.learner import LearnerWorker
 from workers.ued_step import UEDRun
 
 DEFAULT_CONFIG = "ued/quickstart"  # a shipped config (ued.config_files)
+# --simulate's bounds: stand-in Explorers (each a slot of an actor; 4096 is 64 times the
+# largest count docs/benchmarks_distributed.md measures), the seconds a stand-in batch or
+# learner step sleeps, and the timed seconds per count.
+MAX_SIMULATED = 4096
+MAX_SIM_STEP_S = 3600.0
+MAX_SIM_SECONDS = 86400.0
 
 
 @dataclass
@@ -508,8 +514,8 @@ def plot_results(results: list[UEDBenchResult], path: str, title: str = "") -> N
 
 def bench_ued(args: argparse.Namespace) -> int:
     overrides = [*args.overrides, "ued.eval_suites=[]"]  # evaluation is not timed here
-    if args.address:
-        overrides.append(f"ray.address={args.address}")
+    if args.address:  # a string as given (YAML would read `host:` as a mapping)
+        overrides.append(f"ray.address={json.dumps(args.address)}")
     try:
         config = load_config(args.config, overrides)
         if not config.ued.enabled:
@@ -556,16 +562,6 @@ def bench_simulated(config: TrainConfig, args: argparse.Namespace) -> int:
     return 0
 
 
-def positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
-    return value
-
-
 def add_ued_bench(which: argparse._SubParsersAction) -> None:
     """Add `ued` to the `tabx bench` sub-commands."""
     p = which.add_parser("ued", help="UED throughput: local driver and Ray by Explorer count")
@@ -586,16 +582,19 @@ def add_ued_bench(which: argparse._SubParsersAction) -> None:
                    help="also time the restart of an Explorer and of the LevelService (with "
                         "50 logged commits to replay) after a kill, without and with the "
                         "compilation cache")
-    p.add_argument("--simulate", type=int_list(1), metavar="N,...",
+    p.add_argument("--simulate", type=int_list(1, MAX_SIMULATED), metavar="N,...",
                    help="instead: the control plane with these counts of stand-in Explorers "
                         "(sleeping --batch-s per batch) on the continuous schedule, with the "
                         "real driver, level service and commit log")
-    p.add_argument("--batch-s", type=positive_float, default=0.5,
-                   help="--simulate: seconds a stand-in Explorer takes per batch (default 0.5)")
-    p.add_argument("--learner-s", type=positive_float, default=0.5,
-                   help="--simulate: seconds the stand-in learner takes per step (default 0.5)")
-    p.add_argument("--seconds", type=positive_float, default=20.0,
-                   help="--simulate: timed seconds per Explorer count (default 20)")
+    p.add_argument("--batch-s", type=seconds_up_to(MAX_SIM_STEP_S), default=0.5,
+                   help="--simulate: seconds a stand-in Explorer takes per batch (default 0.5, "
+                        f"at most {MAX_SIM_STEP_S:g})")
+    p.add_argument("--learner-s", type=seconds_up_to(MAX_SIM_STEP_S), default=0.5,
+                   help="--simulate: seconds the stand-in learner takes per step (default 0.5, "
+                        f"at most {MAX_SIM_STEP_S:g})")
+    p.add_argument("--seconds", type=seconds_up_to(MAX_SIM_SECONDS), default=20.0,
+                   help="--simulate: timed seconds per Explorer count (default 20, at most "
+                        f"{MAX_SIM_SECONDS:g})")
     p.add_argument("--per-process", type=int_at_least(1), default=8,
                    help="--simulate: stand-in Explorers per actor process (default 8)")
     p.add_argument("--address", help="join a running Ray cluster (auto, or HOST:PORT)")

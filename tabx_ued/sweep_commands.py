@@ -20,19 +20,34 @@ from ued.errors import ConfigError
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from ued.sweep_spec import read_sweep_spec
+    from ued.sweep_spec import read_sweep_spec, resources_from
 
+    if args.num_cpus is not None and args.num_cpus < 1:
+        raise ConfigError(f"--num-cpus: expected an integer >= 1 (the CPUs of the Ray started "
+                          f"here), got {args.num_cpus}")
+    if args.address is not None and not args.address.strip():
+        raise ConfigError("--address: empty; give auto or HOST:PORT (or leave --address out "
+                          "to start Ray here)")
     spec = read_sweep_spec(args.spec, args.overrides)  # every error before anything starts
-    if args.cpus is not None or args.gpus is not None:
-        resources = dataclasses.replace(
-            spec.resources, **{k: float(v) for k, v in (("cpus", args.cpus),
-                                                         ("gpus", args.gpus)) if v is not None})
-        if resources.cpus < 0 or resources.gpus < 0 or resources.cpus + resources.gpus == 0:
-            raise ConfigError("--cpus, --gpus: a trial needs some CPUs or a GPU fraction")
-        spec = dataclasses.replace(spec, resources=resources)
+    folder = spec.folder(args.dir)
+    if args.resume and not args.overrides:
+        from ued.sweep_folder import SweepFolder
+
+        sweep = SweepFolder(folder)
+        started = sweep.overrides()
+        for name in sweep.trials() if started else ():  # its files, checked before the note
+            sweep.record(name)
+        if started:  # the overrides the sweep started with apply to every trial again
+            print(f"{folder}: resuming with the overrides it started with: "
+                  f"{' '.join(started)}", file=sys.stderr)
+            spec = read_sweep_spec(args.spec, started)
+    given = {k: v for k, v in (("cpus", args.cpus), ("gpus", args.gpus)) if v is not None}
+    if given:
+        spec = dataclasses.replace(spec, resources=resources_from(
+            given, spec.resources, names={"cpus": "--cpus", "gpus": "--gpus"}))
     from workers.sweep import run_sweep
 
-    outcome = run_sweep(spec, None if args.dir is None else f"{args.dir}/{spec.name}",
+    outcome = run_sweep(spec, folder,
                         resume=args.resume, address=args.address, num_cpus=args.num_cpus,
                         table_every_s=args.table_every)
     done = len(outcome.finished) + len(outcome.skipped)
@@ -47,8 +62,13 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 def cmd_sweep_report(args: argparse.Namespace) -> int:
     from ued.sweep_report import write_report
 
-    written = write_report(args.sweep_dir, out=args.out, partial=args.partial,
-                           stream=sys.stderr, interval=args.interval)
+    try:
+        written = write_report(args.sweep_dir, out=args.out, partial=args.partial,
+                               stream=sys.stderr, interval=args.interval)
+    except OSError as err:  # the output folder cannot be made or written
+        where = f"--out: {args.out}" if args.out is not None else str(err.filename or "")
+        raise ConfigError(f"{where}: cannot write the report there ({err.strerror or err}); "
+                          f"give a folder that can be made or written (--out)") from None
     print(written.markdown.read_text(), end="")
     print(f"written: {', '.join(str(p) for p in written.files())}", file=sys.stderr)
     return 0

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import sys
 from pathlib import Path
 from typing import Any
@@ -33,7 +34,7 @@ DEFAULT_EPISODES = 100  # of `tabx eval` without --suite
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from ued.config import ConfigError, load_config
+    from ued.config import ConfigError, check_ray_overrides, load_config
     from workers.driver import RunStopped
     from workers.train import train
 
@@ -54,11 +55,14 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise UserError(f"--max-updates must be >= 1, got {args.max_updates}")
     if args.address is not None and not args.ray:
         raise UserError("--address joins a Ray cluster: give --ray too")
+    if args.address is not None and not args.address.strip():
+        raise UserError("--address: empty; give auto or HOST:PORT (or leave --address out to "
+                        "start Ray here)")
     ray_overrides = []
     if args.ray:
         ray_overrides.append("ray.enabled=true")
-    if args.address is not None:
-        ray_overrides.append(f"ray.address={args.address}")
+    if args.address is not None:  # a string as given (YAML would read `host:` as a mapping)
+        ray_overrides.append(f"ray.address={json.dumps(args.address)}")
     try:
         if args.resume:
             if config_path and Path(config_path).is_dir():
@@ -77,6 +81,7 @@ def cmd_train(args: argparse.Namespace) -> int:
                                 "quickstart, marl/mappo_crossfire; --list-configs) or "
                                 "--resume RUN_DIR")
             config = load_config(config_path, [*overrides, *ray_overrides])
+            check_ray_overrides(config, overrides)
             run_dir = train(config, run_dir=args.run_dir, max_updates=args.max_updates,
                             progress=not args.quiet)
     except (ConfigError, RunStopped) as err:

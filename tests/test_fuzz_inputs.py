@@ -56,11 +56,13 @@ FUZZ = settings(max_examples=int(os.environ.get("TABX_HYPOTHESIS_EXAMPLES", "25"
 
 
 def tree(folder: Path) -> dict[str, str]:
-    """Every file and folder under `folder`: relative path -> SHA-256 (folders: 'dir')."""
+    """Every file and folder under `folder`: relative path -> SHA-256 (folders: 'dir', links:
+    their target, never followed: one may name a device)."""
     out = {}
     for path in sorted(folder.rglob("*")):
         rel = str(path.relative_to(folder))
-        out[rel] = "dir" if path.is_dir() else hashlib.sha256(path.read_bytes()).hexdigest()
+        out[rel] = (f"link -> {os.readlink(path)}" if path.is_symlink() else "dir"
+                    if path.is_dir() else hashlib.sha256(path.read_bytes()).hexdigest())
     return out
 
 
@@ -147,6 +149,11 @@ def each_step(run: Path, rel: str, harm) -> None:
 
 def remove(path: Path) -> None:
     shutil.rmtree(path) if path.is_dir() else path.unlink()
+
+
+def link_to_device(path: Path) -> None:
+    path.unlink()
+    path.symlink_to("/dev/zero")
 
 
 def edit_config(run: Path, old: str, new: str) -> None:
@@ -255,6 +262,16 @@ RUN_DAMAGE = {
     "events damaged": (lambda r: [p.write_bytes(bytes(range(256)) * 4)
                                   for p in (r / "events").iterdir()],
                        r"no scalars in their event folders", (PLOT,)),
+    # A link to a device is named as what it is, never opened (it would never end).
+    "config a link to a device": (lambda r: link_to_device(r / CONFIG_FILE),
+                                  r"config\.yaml: a character device, not a file \(through a "
+                                  r"symbolic link\)", CONFIG_READERS),
+    "state files links to a device": (lambda r: each_step(r, "levels/state-{step}.json",
+                                                          link_to_device),
+                                      r"state-4\.json: a character device", SNAPSHOT_READERS),
+    "buffer snapshots links to a device": (lambda r: each_step(
+        r, "levels/buffer-{step}.msgpack", link_to_device), r"buffer-4\.msgpack: a character "
+        r"device", SNAPSHOT_READERS),
 }
 
 
@@ -782,3 +799,165 @@ def test_an_address_no_run_can_join_is_one_line_naming_its_setting(setting, addr
     code, out, err = run_cli(capsys, argv)
     assert_one_error(code, out, err, argv, f"{setting}: ", ADDRESSES[setting, address])
     assert not (tmp_path / "never").exists()
+
+
+# --- options and settings a run would take silently, or fail on late ---------------------------
+
+
+TRAIN_ARGUMENTS = {
+    # The local driver reads no ray.* setting: dropped without a word before.
+    "ray overrides without --ray": (["ray.learners=4", "ray.schedule=continuous"],
+                                    r"override 'ray\.learners=4': ray\.learners: a setting of "
+                                    r"runs on Ray, and this run is not on Ray"),
+    "a bare ray field without --ray": (["explorers=3"], r"override 'explorers=3': "
+                                                        r"ray\.explorers: a setting of runs"),
+    "--address empty": (["--ray", "--address", ""], r"--address: empty"),
+    "--address host:": (["--ray", "--address", "localhost:"],
+                        r"ray\.address: expected 'auto' or HOST:PORT .*got 'localhost:'"),
+    "--address port 99999": (["--ray", "--address", "127.0.0.1:99999"],
+                             r"ray\.address: expected .*a port in 1\.\.65535"),
+    "--address http://": (["--ray", "--address", "http://127.0.0.1:{port}"],
+                          r"ray\.address: 'http://127\.0\.0\.1:\d+' is a dashboard's"),
+    "--address ray:// closed": (["--ray", "--address", "ray://127.0.0.1:{port}"],
+                                r"ray\.address: 'ray://127\.0\.0\.1:\d+' is a Ray Client address"),
+    "--address [::1] closed": (["--ray", "--address", "[::1]:{port}"],
+                               r"ray\.address: no Ray head answers at \[::1\]:\d+"),
+    "ray.max_inflight 1e9": (["--ray", "ray.max_inflight=1000000000"],
+                             r"ray\.max_inflight: must be in \[1, 64\]"),
+    "ray.placement_timeout_s 1e308": (["--ray", "ray.placement_timeout_s=1e308"],
+                                      r"ray\.placement_timeout_s: must be in \(0, 86400\]"),
+    "env.max_steps 10^12": (["env.max_steps=1000000000000"],
+                            r"env\.max_steps: must be in \[1, 2\*\*31 - 1\]"),
+    # A rollout shorter than an episode ends one only by an elimination: a buffer that may
+    # admit no level (Robust PLR then trains nothing, and exited 0).
+    "a buffer that may admit no level": (["learner.num_steps=4", "learner.total_timesteps=64"],
+                                         r"learner\.num_steps: 4 steps per rollout, below "
+                                         r"env\.max_steps \(8\): a level enters robust_plr's "
+                                         r"buffer only when"),
+}
+
+
+@pytest.mark.parametrize("case", list(TRAIN_ARGUMENTS))
+def test_train_refuses_what_it_would_drop_or_fail_on_late(case, config_text, tmp_path, capsys):
+    """One line before a run folder exists (the address checks are immediate)."""
+    path = tmp_path / "ok.yaml"
+    path.write_text(config_text)
+    args, pattern = TRAIN_ARGUMENTS[case]
+    port = free_port()
+    argv = ["train", str(path), *(a.format(port=port) for a in args),
+            f"run.dir={tmp_path / 'runs'}", "--quiet", "--max-updates", "1"]
+    before = tree(tmp_path)
+    assert_one_error(*run_cli(capsys, argv), argv, "", pattern)
+    assert tree(tmp_path) == before
+
+
+@pytest.mark.parametrize("option,value", [("--seconds", "inf"), ("--batch-s", "inf"),
+                                          ("--batch-s", "1e308"), ("--learner-s", "nan"),
+                                          ("--simulate", "100000000")])
+def test_bench_ued_simulate_bounds_its_options(option, value, capsys):
+    """`--seconds inf` ran until killed, `--batch-s inf` ended in an "unexpected"
+    OverflowError, `--simulate 100000000` in a MemoryError: each is one usage line."""
+    argv = ["bench", "ued", "--simulate", "1", option, value]
+    code, out, err = run_cli(capsys, argv)
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 2 and "Traceback" not in err, err[-2000:]
+    assert re.fullmatch(rf"tabx bench ued: error: argument {option}: .*(<=|in \().*", lines[-1])
+
+
+def test_run_folders_are_named_from_what_they_train():
+    """A shipped config names its runs by `{key}`s of what they train: an override of the
+    method or the free parameter changes the name (`quickstart` wrote
+    quickstart_robust_plr_zone-* for an SFL run)."""
+    assert load_config("quickstart").run_name == "quickstart_robust_plr_zone"
+    assert load_config("quickstart", ["ued.method=sfl"]).run_name == "quickstart_sfl_zone"
+    assert (load_config("quickstart", ["levels.free=[unit_spec]"]).run_name
+            == "quickstart_robust_plr_unit_spec")
+    assert load_config("ued/accel_zone", ["ued.method=dr"]).run_name == "dr_zone"
+    assert load_config("marl/mappo_crossfire", ["algorithm=ippo"]).run_name == "ippo_crossfire"
+    assert load_config("marl/mappo_crossfire").to_dict()["run"]["name"] == "mappo_crossfire"
+    with pytest.raises(ConfigError, match=r"run\.name: \{nope\} names no config key"):
+        load_config("quickstart", ["run.name=x_{nope}"])
+    with pytest.raises(ConfigError, match=r"run\.name: \{learner\} is a section"):
+        load_config("quickstart", ["run.name=x_{learner}"])
+
+
+MAKE_ENV = {
+    "max_steps 10^12": ({"max_steps": 10**12}, r"max_steps must be an integer in \[1, 2\*\*31"),
+    "max_steps 10.7": ({"max_steps": 10.7}, r"max_steps must be an integer"),
+    "max_steps True": ({"max_steps": True}, r"max_steps must be an integer"),
+    "start_noise NaN": ({"start_noise": float("nan")}, r"start_noise must be a number"),
+    "start_noise negative": ({"start_noise": -1.0}, r"start_noise must be a number"),
+    "start_noise 1e30": ({"start_noise": 1e30}, r"start_noise must be a number .*\[0, 1000\]"),
+    "shuffle_positions 'no'": ({"shuffle_positions": "no"},
+                               r"shuffle_positions must be True or False, got 'no'"),
+}
+
+
+@pytest.mark.parametrize("case", list(MAKE_ENV))
+def test_make_env_refuses_arguments_out_of_range(case):
+    pytest.importorskip("jaxmarl")
+    from tabx.compat.jaxmarl import make_env
+
+    kwargs, pattern = MAKE_ENV[case]
+    with pytest.raises(ValueError, match=pattern):
+        make_env("crossfire", **kwargs)
+    make_env("crossfire", max_steps=10.0, start_noise=2, shuffle_positions=False)  # fine
+
+
+def test_a_step_folder_orbax_never_wrote_is_reported_without_warnings(finished, tmp_path,
+                                                                       capsys, caplog):
+    """A bogus `checkpoints/999/`: `runs check` names it damaged, with no orbax warning about
+    its missing metadata file before (six of them, one per look)."""
+    run = tmp_path / "run"
+    shutil.copytree(finished, run)
+    (run / CHECKPOINT_DIR / "999").mkdir()
+    argv = ["runs", "check", str(run)]
+    code, out, err = run_cli(capsys, argv)
+    assert code == 1 and "step 999: damaged" in out and "newest intact step: 4" in out, out
+    assert not [r for r in caplog.records if "Metadata file does not exist" in r.getMessage()]
+    assert "WARNING" not in err, err
+
+
+def test_runs_check_says_which_intact_steps_are_unchecked(finished, tmp_path, capsys):
+    """A checkpoint without `_CHECKPOINT_METADATA` restores, but its digests are gone: the
+    step is intact as far as it was checked, and the line says its arrays were not."""
+    run = tmp_path / "run"
+    shutil.copytree(finished, run)
+    (run / CHECKPOINT_DIR / str(STEPS) / "_CHECKPOINT_METADATA").unlink()
+    code, out, err = run_cli(capsys, ["runs", "check", str(run)])
+    assert code == 0, out + err
+    assert "  step 2: intact\n" in out, out
+    assert re.search(r"step 4: intact as far as it was checked: .*no digests .*unchecked", out)
+
+
+def test_abandoned_orbax_reads_are_not_reported():
+    """Orbax's read coroutines closed unfinished (a truncated array file) turn their
+    GeneratorExit into an exception Python can only report: one traceback each, 459 to 1261
+    lines after `runs check` and `--resume` had said what was wrong. The unraisable hook of
+    ued/checkpoint.py drops those reports, and only those."""
+    import inspect
+    import types
+
+    from orbax.checkpoint._src.serialization import serialization
+
+    from ued.checkpoint import _is_abandoned_read
+
+    read = serialization._read_array_index_and_device_put
+    arguments = {name: None for name, p in inspect.signature(read).parameters.items()
+                 if p.default is inspect.Parameter.empty}
+    coroutine = read(**arguments)  # never started: its body does not run
+    try:
+        def report(exc: BaseException, where: object) -> types.SimpleNamespace:
+            return types.SimpleNamespace(exc_type=type(exc), exc_value=exc, exc_traceback=None,
+                                         err_msg=None, object=where)
+
+        closed = Exception("Encountered error while reading array index: (slice(0, 16, 1),)")
+        closed.__cause__ = GeneratorExit()
+        assert _is_abandoned_read(report(closed, coroutine))
+        assert _is_abandoned_read(report(RuntimeError("Event loop is closed"), None))
+        assert not _is_abandoned_read(report(ValueError("something else"), coroutine))
+        other = Exception("mine")
+        other.__cause__ = GeneratorExit()
+        assert not _is_abandoned_read(report(other, report))  # not an orbax coroutine
+    finally:
+        coroutine.close()

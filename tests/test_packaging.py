@@ -114,6 +114,7 @@ def test_the_wheel_installs_and_runs_from_a_fresh_environment(tmp_path):
     assert "crossfire" in tabx_cmd("scenarios", "list")
     assert "ued/quickstart" in tabx_cmd("train", "--list-configs").split()
     out = tabx_cmd("train", "quickstart", "learner.num_envs=4", "learner.num_steps=16",
+                   "env.max_steps=16",
                    "ued.eval_suites=[]", "ued.buffer_size=8", "--max-updates", "1",
                    "--run-dir", str(work / "run"), "--quiet")
     assert out.strip().endswith(str(work / "run"))

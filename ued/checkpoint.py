@@ -97,6 +97,7 @@ class Checkpoints:
         self.covers = tuple(covers)
         self._options = ocp.CheckpointManagerOptions(max_to_keep=keep, create=create,
                                                      enable_async_checkpointing=False)
+        _quiet_abandoned_reads()
         self._manager = open_manager(self.directory, self._options)
 
     def latest(self) -> int | None:
@@ -179,6 +180,11 @@ class Checkpoints:
         except Exception:  # noqa: BLE001 (a damaged _CHECKPOINT_METADATA: nothing recorded)
             recorded = None
         return recorded if isinstance(recorded, dict) else {}
+
+    def has_digests(self, update: int) -> bool:
+        """Whether checkpoint `update` recorded the digests of its arrays (one without, or
+        whose `_CHECKPOINT_METADATA` cannot be read, restores unchecked)."""
+        return isinstance(self._recorded(update).get("arrays"), dict)
 
     def verify(self, update: int, item: Any) -> None:
         """CheckpointError unless every array of `item` (what was read of checkpoint
@@ -331,8 +337,16 @@ def step_metadata(manager: ocp.CheckpointManager, update: int) -> Any:
         absl_logger.removeFilter(quiet)
 
 
-def _is_abandoned_read(exc: BaseException | None) -> bool:
-    return isinstance(exc, RuntimeError) and str(exc) == "Event loop is closed"
+def _is_abandoned_read(unraisable: Any) -> bool:
+    """A report of a read orbax abandoned: its reply into the event loop it closed, or one of
+    its read coroutines closed unfinished (orbax turns the GeneratorExit of `close` into an
+    "Encountered error while reading array index" exception, which Python can only report)."""
+    exc = unraisable.exc_value
+    if isinstance(exc, RuntimeError) and str(exc) == "Event loop is closed":
+        return True
+    code = getattr(unraisable.object, "cr_code", None)
+    return (isinstance(exc, Exception) and isinstance(exc.__cause__, GeneratorExit)
+            and code is not None and "orbax" in code.co_filename)
 
 
 class _AbandonedTasks(logging.Filter):
@@ -362,8 +376,8 @@ _QUIETED = False
 
 
 def _quiet_abandoned_reads() -> None:
-    """Keep the leftovers of a failed restore off the terminal (installed once, at the first
-    restore).
+    """Keep the leftovers of a failed restore off the terminal (installed once, when the first
+    checkpoints are opened).
 
     Orbax reads a checkpoint's arrays concurrently on an event loop that it closes as soon as
     the first read fails; the reads still in flight then complete into the closed loop, and
@@ -379,11 +393,14 @@ def _quiet_abandoned_reads() -> None:
     previous = sys.unraisablehook
 
     def hook(unraisable: sys.UnraisableHookArgs) -> None:
-        if not _is_abandoned_read(unraisable.exc_value):
+        if not _is_abandoned_read(unraisable):
             previous(unraisable)
 
     sys.unraisablehook = hook
     logging.getLogger("asyncio").addFilter(_AbandonedTasks())
+    # A step folder without its metadata file (a bogus `checkpoints/999/`) is a CheckpointError
+    # naming the step; orbax warns about it once per look at it beforehand.
+    logging.getLogger("absl").addFilter(_MessageFilter("Metadata file does not exist: "))
 
 
 __all__ = ["INTEGRITY_KEY", "CheckpointError", "Checkpoints", "array_digests", "file_digest",

@@ -28,6 +28,7 @@ import dataclasses
 import difflib
 import functools
 import math
+import re
 import types
 import typing
 from collections.abc import Mapping, Sequence
@@ -87,7 +88,10 @@ class EnvSection:
                                       "evaluation: tabx eval --ally RUN_A --enemy RUN_B)")
         except ValueError as err:
             raise ConfigError(f"{prefix}.opponent: {err}") from None
-        _check(self.max_steps >= 1, f"{prefix}.max_steps", f"must be >= 1, got {self.max_steps}")
+        from tabx.constants import MAX_STEPS
+
+        _check(1 <= self.max_steps <= MAX_STEPS, f"{prefix}.max_steps",
+               f"must be in [1, 2**31 - 1] (the step counter is int32), got {self.max_steps}")
         from tabx.profiles import PROFILE_NAMES
 
         _check(self.profile in PROFILE_NAMES, f"{prefix}.profile",
@@ -240,7 +244,9 @@ Q_LEARNER_SETTINGS = {"lr": 5e-5, "anneal_lr": False, "hidden_dim": 512, "max_gr
 class RunSection:
     """Where and how often the run writes: run folder, checkpoints, logs."""
 
-    name: str = ""  # run folder name prefix; empty: ALGORITHM_SCENARIO
+    # Run folder name prefix; empty: [METHOD_FREE_]ALGORITHM_SCENARIO. `{key}` stands for the
+    # config's value of that key (`{ued.method}`, `{levels.free}`: `fill_run_name`).
+    name: str = ""
     dir: str = "runs"  # parent folder of run folders
     checkpoint_every: int = 50  # updates between checkpoints (the last update always saves)
     keep_checkpoints: int = 3  # checkpoints kept (the newest)
@@ -334,6 +340,8 @@ CHAOS_ROLES = ("explorer", "service", "evaluator")  # the actors a run restarts
 
 
 RAY_SCHEDULES = ("sequential", "continuous")
+MAX_INFLIGHT = 64  # ray.max_inflight: the docs' settings are 1 to 4
+MAX_PLACEMENT_TIMEOUT_S = 86400.0  # ray.placement_timeout_s
 
 
 @dataclass(frozen=True)
@@ -369,8 +377,9 @@ class RaySection:
     def validate(self, prefix: str = "ray") -> None:
         _check(self.explorers >= 0, f"{prefix}.explorers",
                f"must be >= 0 (0: the learner actor scores too), got {self.explorers}")
-        _check(self.max_inflight >= 1, f"{prefix}.max_inflight",
-               f"must be >= 1, got {self.max_inflight}")
+        _check(1 <= self.max_inflight <= MAX_INFLIGHT, f"{prefix}.max_inflight",
+               f"must be in [1, {MAX_INFLIGHT}] (batches an Explorer runs ahead, each a "
+               f"batch of levels in memory), got {self.max_inflight}")
         _check(self.max_policy_lag >= 0, f"{prefix}.max_policy_lag",
                f"must be >= 0, got {self.max_policy_lag}")
         _check(self.schedule in RAY_SCHEDULES, f"{prefix}.schedule",
@@ -386,8 +395,10 @@ class RaySection:
                f"must be >= 0, got {self.learner_restarts}")
         _check(self.object_store_mb >= 64, f"{prefix}.object_store_mb",
                f"must be >= 64, got {self.object_store_mb}")
-        _check(self.placement_timeout_s > 0, f"{prefix}.placement_timeout_s",
-               f"must be > 0, got {self.placement_timeout_s}")
+        _check(0 < self.placement_timeout_s <= MAX_PLACEMENT_TIMEOUT_S,
+               f"{prefix}.placement_timeout_s",
+               f"must be in (0, {MAX_PLACEMENT_TIMEOUT_S:g}] seconds (a day), got "
+               f"{self.placement_timeout_s:g}")
         _check(self.actor_restarts >= -1, f"{prefix}.actor_restarts",
                f"must be -1 (no limit) or >= 0, got {self.actor_restarts}")
         _check(self.chaos_kill_every >= 0, f"{prefix}.chaos_kill_every",
@@ -524,7 +535,8 @@ class TrainConfig:
             return self.run.name
         scenario = Path(self.env.scenario[0]).stem
         more = f"+{len(self.env.scenario) - 1}" if len(self.env.scenario) > 1 else ""
-        method = f"{self.ued.method}_" if self.ued.enabled else ""
+        method = (f"{self.ued.method}_{_name_part(self.levels.free)}_" if self.ued.enabled
+                  else "")
         return f"{method}{self.algorithm}_{scenario}{more}"
 
     def to_dict(self) -> dict[str, Any]:
@@ -640,11 +652,57 @@ def _build(cls: type, data: Any, prefix: str) -> Any:
 
 
 def config_from_dict(data: Any, source: str = "config") -> TrainConfig:
-    """A validated TrainConfig from a parsed YAML mapping; errors name `source`."""
+    """A validated TrainConfig from a parsed YAML mapping, its `run.name` filled in
+    (`fill_run_name`); errors name `source`."""
     try:
-        return _build(TrainConfig, data, "").validate()
+        return fill_run_name(_build(TrainConfig, data, "")).validate()
     except ConfigError as err:
         raise ConfigError(f"{source}: {err}") from None
+
+
+_NAME_FIELD = re.compile(r"\{([^{}]*)\}")
+_NAME_UNSAFE = re.compile(r"[^A-Za-z0-9._+=-]+")
+
+
+def _name_part(value: Any) -> str:
+    if isinstance(value, list | tuple):
+        return "+".join(_name_part(v) for v in value)
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str) and ("/" in value or value.endswith(".json")):
+        value = Path(value).stem  # a scenario file: its name
+    return _NAME_UNSAFE.sub("_", str(value))
+
+
+def fill_run_name(config: TrainConfig) -> TrainConfig:
+    """`config` with each `{key}` of `run.name` replaced by its value of that config key
+    (`ued.method`, `levels.free`, `algorithm`, `seed`, a bare field name: lists joined with
+    `+`, a scenario file by its name), so that a run is named from what it trains:
+    `quickstart_{ued.method}_{levels.free}` is `quickstart_sfl_zone` with `ued.method=sfl`."""
+    name = config.run.name
+    if "{" not in name and "}" not in name:
+        return config
+    paths = _field_paths()
+
+    def value(match: re.Match) -> str:
+        key = match.group(1).strip()
+        path = paths[key][0] if "." not in key and len(paths.get(key, [])) == 1 else key
+        found: Any = config
+        for part in path.split(".") if path else ["?"]:
+            if not dataclasses.is_dataclass(found) or part not in {
+                    f.name for f in dataclasses.fields(found)}:
+                raise ConfigError(f"run.name: {{{key}}} names no config key (e.g. "
+                                  f"{{ued.method}}, {{levels.free}}, {{algorithm}})")
+            found = getattr(found, part)
+        if dataclasses.is_dataclass(found):
+            raise ConfigError(f"run.name: {{{key}}} is a section; name a key of it")
+        return _name_part(found)
+
+    filled = _NAME_FIELD.sub(value, name)
+    if "{" in filled or "}" in filled:
+        raise ConfigError(f"run.name: unbalanced braces in {name!r:.80} ({{key}} names a "
+                          f"config key)")
+    return dataclasses.replace(config, run=dataclasses.replace(config.run, name=filled))
 
 
 def load_config(path: str | Path, overrides: Sequence[str] = ()) -> TrainConfig:
@@ -671,6 +729,40 @@ def _blame_override(err: ConfigError, source: str, overrides: Sequence[str]) -> 
             shown = repr(item) if len(item) <= 100 else f"{item[:80]!r}..."
             return ConfigError(f"override {shown}: {inner}")
     return err
+
+
+def check_levels_admitted(config: TrainConfig) -> None:
+    """Refuse a new UED run whose level buffer may admit no level. A level enters the buffer
+    only with a finite score, and it has one only where an episode ended within the rollout
+    that scored it (`ued.scores`: -inf otherwise, which no slot's score is below). A rollout of
+    `learner.num_steps` below `env.max_steps` ends an episode only where a team is eliminated
+    first, so the buffer may stay empty for ever: Robust PLR, which trains on buffer levels
+    alone, then trains nothing, and PLR and ACCEL are domain randomisation in effect. (Checked
+    for new runs, not in `validate`: a run folder of such a config still reads.)"""
+    if not config.ued.enabled or not CURRICULA[config.ued.method].uses_buffer:
+        return
+    _check(config.learner.num_steps >= config.env.max_steps, "learner.num_steps",
+           f"{config.learner.num_steps} steps per rollout, below env.max_steps "
+           f"({config.env.max_steps}): a level enters {config.ued.method}'s buffer only when "
+           f"one of its episodes ends within the rollout that scores it, so the buffer may stay "
+           f"empty (Robust PLR then trains nothing); set learner.num_steps >= env.max_steps, "
+           f"or lower env.max_steps")
+
+
+def check_ray_overrides(config: TrainConfig, overrides: Sequence[str]) -> None:
+    """Refuse overrides of the `ray:` section for a run that is not on Ray (`ray.enabled`
+    false): the local driver reads none of them, so they would be dropped without a word."""
+    if config.ray.enabled:
+        return
+    paths = _field_paths()
+    for item in overrides:
+        key = item.partition("=")[0].strip()
+        key = paths[key][0] if "." not in key and len(paths.get(key, [])) == 1 else key
+        if key.startswith("ray.") and key != "ray.enabled":
+            shown = repr(item) if len(item) <= 100 else f"{item[:80]!r}..."
+            raise ConfigError(f"override {shown}: {key}: a setting of runs on Ray, and this run "
+                              f"is not on Ray (ray.enabled is false): train on Ray (tabx train "
+                              f"--ray, or ray.enabled=true), or drop {key}")
 
 
 def read_config_file(path: str | Path) -> Any:
@@ -754,5 +846,6 @@ def apply_overrides(data: Any, overrides: Sequence[str], source: str = "config")
 
 __all__ = ["PPO_ONLY_FIELDS", "Q_LEARNER_SETTINGS", "TEAMS", "UED_SCORES",
            "ConfigError", "EnvSection", "LearnerConfig", "QLearningConfig", "RaySection",
-           "RunSection", "TrainConfig", "UEDSection", "apply_overrides", "config_from_dict",
-           "load_config", "read_config_file"]
+           "RunSection", "TrainConfig", "UEDSection", "apply_overrides", "check_levels_admitted",
+           "check_ray_overrides", "config_from_dict", "fill_run_name", "load_config",
+           "read_config_file"]

@@ -31,7 +31,7 @@ from typing import Any
 
 import jax
 
-from tabx.files import atomic_write_text
+from tabx.files import atomic_write_text, not_a_file
 from ued.checkpoint import CheckpointError, Checkpoints
 from ued.config import (
     TEAMS,
@@ -164,8 +164,11 @@ def lock_run_dir(run_dir: str | Path, wait_s: float = 0.0) -> Iterator[None]:
 def read_run_config(run_dir: str | Path) -> TrainConfig:
     """The resolved config saved in a run folder."""
     path = Path(run_dir) / CONFIG_FILE
-    if not path.is_file():
+    kind = not_a_file(path)
+    if kind == "missing":
         raise ConfigError(f"{run_dir}: not a run folder (no {CONFIG_FILE})")
+    if kind is not None:  # never opened: a device or FIFO could block or never end
+        raise ConfigError(f"{path}: {kind}; a run folder's config is a YAML file")
     data = read_config_file(path)
     if isinstance(data, dict) and isinstance(data.get("learner"), dict):
         # A resolved config lists every field; one without `matmul_dtype` was written before

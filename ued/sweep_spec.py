@@ -19,6 +19,7 @@ A sweep file (YAML) names what an experiment is; `tabx sweep SPEC` runs it
       - {name: lr-high, learner.lr: 1.0e-2}   # optional name, an optional base
     resources: {cpus: 1, gpus: 0, explorers: 0}   # what each trial holds while it runs
     max_concurrent: 0                # trials at once (0: as many as the resources allow)
+    max_trials: 1000                 # refuse a file that makes more trials (a typo's guard)
 
 `grid` may also be a list of such mappings: the union of their cross products (the paper's
 main grid and its ablations). A string value may name the trial's label on another axis as
@@ -29,17 +30,20 @@ name (`seed`, `lr`, `scenario`) is that key, any other bare name is a named axis
 
 Every trial's config is built and validated when the file is read: a mistake in the file, or a
 value the config refuses, is one `ConfigError` naming the file, the field and (for a config
-error) the trial, before anything runs. What only a run can find (a scenario or suite that
-does not exist, a device the machine lacks) fails that trial alone.
+error) the trial, before anything runs. The number of trials is counted from the axes before
+any is built: more than `max_trials` (default `MAX_TRIALS`) is refused. The sweep's and every
+trial's name is one plain folder name (`check_folder_name`). What only a run can find (a
+scenario or suite that does not exist, a device the machine lacks) fails that trial alone.
 """
 
 from __future__ import annotations
 
 import itertools
 import json
+import math
 import re
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +51,8 @@ from ued.config import (
     ConfigError,
     TrainConfig,
     apply_overrides,
+    check_levels_admitted,
+    check_ray_overrides,
     config_from_dict,
     read_config_file,
 )
@@ -54,13 +60,21 @@ from ued.config_files import resolve_config
 from ued.yaml_reader import read_yaml
 
 SPEC_KEYS = ("name", "description", "dir", "base", "set", "grid", "points", "resources",
-             "max_concurrent", "report")
+             "max_concurrent", "max_trials", "report")
 RESOURCE_KEYS = ("cpus", "gpus", "explorers")
 REPORT_KEYS = ("seed_axis", "line_axis", "figure_axis")
 POINT_KEYS = ("name", "base")
 BASE_KEY = "base"  # an axis or point key: the trial's base config
 TEMPLATE = re.compile(r"\{([A-Za-z_][A-Za-z0-9_.]*)\}")
 NAME_CHARS = re.compile(r"[^A-Za-z0-9._+=-]+")
+# Trials a file may make unless its `max_trials` says more: every trial's config is built and
+# validated when the file is read (about 13 ms each on the development VM), so a grid of 10^4
+# trials takes minutes to read, and a typo (an axis of 100 values) makes a sweep nobody meant.
+MAX_TRIALS = 1000
+# A folder name of the sweep folder: `trials/<trial>.json` and Tune's folders must fit a file
+# system's 255 bytes a name.
+MAX_NAME_BYTES = 200
+MAX_EXPLORERS = 1024  # resources.explorers: one placement-group bundle each
 
 
 @dataclass(frozen=True)
@@ -115,6 +129,7 @@ class SweepSpec:
     dir: str = "sweeps"
     description: str = ""
     report: ReportAxes = field(default_factory=ReportAxes)
+    overrides: tuple[str, ...] = ()  # the command line's KEY=VALUE, applied to every trial
 
     def folder(self, parent: str | Path | None = None) -> Path:
         """The sweep folder: `parent` (default the file's `dir`) / name."""
@@ -216,6 +231,18 @@ def _read_axis(name: Any, values: Any, where: str, keys: set[str]) -> _Axis:
                              for v in values))
 
 
+def check_folder_name(name: Any, where: str) -> str:
+    """`name` if it is one plain folder name of letters, digits and `. _ + = -`, not `.` or
+    `..` (it would name the folder above), at most `MAX_NAME_BYTES`; else a ConfigError."""
+    allowed = "letters, digits, . _ + = -; not . or .."
+    if not isinstance(name, str) or not name or NAME_CHARS.search(name) or set(name) == {"."}:
+        raise ConfigError(f"{where}: expected a folder name ({allowed}), got {name!r:.80}")
+    if len(name.encode()) > MAX_NAME_BYTES:
+        raise ConfigError(f"{where}: the folder name {name[:40]!r}... is {len(name.encode())} "
+                          f"bytes; at most {MAX_NAME_BYTES} (shorten the name or its labels)")
+    return name
+
+
 def _trial_name(labels: Sequence[tuple[str, str]]) -> str:
     parts = []
     for axis, label in labels:
@@ -256,10 +283,7 @@ def _spec_from_dict(data: Any, path: Path, extra: tuple[str, ...]) -> SweepSpec:
         raise ConfigError("base: missing (the training config every trial starts from)")
     if "grid" not in data and "points" not in data:
         raise ConfigError("grid: missing (give `grid`, `points`, or both)")
-    name = data.get("name", path.stem)
-    if not isinstance(name, str) or not name or NAME_CHARS.search(name):
-        raise ConfigError(f"name: expected a folder name (letters, digits, . _ + = -), got "
-                          f"{name!r}")
+    name = check_folder_name(data.get("name", path.stem), "name")
     keys = _config_keys()
     settings = data.get("set") or {}
     if not isinstance(settings, Mapping):
@@ -276,14 +300,28 @@ def _spec_from_dict(data: Any, path: Path, extra: tuple[str, ...]) -> SweepSpec:
     if not isinstance(points, Sequence) or not all(isinstance(p, Mapping) for p in points):
         raise ConfigError("points: expected a list of mappings (config key: value)")
 
+    max_trials = data.get("max_trials", MAX_TRIALS)
+    if isinstance(max_trials, bool) or not isinstance(max_trials, int) or max_trials < 1:
+        raise ConfigError(f"max_trials: expected an integer >= 1, got {max_trials!r}")
+
     # (where, labels, {key: value}, explicit name) of each trial, in order
     drafts: list[tuple[str, list[tuple[str, str]], list[tuple[str, Any]], str | None]] = []
     axes: list[str] = []
+    grid_axes = []
     for g, grid in enumerate(grids):
         where = "grid" if len(grids) == 1 else f"grid[{g}]"
         if not grid:
             raise ConfigError(f"{where}: no axes")
-        read = [_read_axis(n, v, where, keys) for n, v in grid.items()]
+        grid_axes.append((where, [_read_axis(n, v, where, keys) for n, v in grid.items()]))
+    # Counted before any trial is made: the product of the axes' lengths of every grid.
+    count = len(points) + sum(math.prod(len(a.values) for a in read) for _, read in grid_axes)
+    if count > max_trials:
+        sizes = "; ".join(f"{where}: {' x '.join(str(len(a.values)) for a in read)}"
+                          for where, read in grid_axes)
+        raise ConfigError(f"{count:,} trials ({sizes}; {len(points)} points) is more than "
+                          f"max_trials ({max_trials:,}); shrink the grid, or set `max_trials: "
+                          f"{count}` in the file if you mean it")
+    for where, read in grid_axes:
         axes += [a.name for a in read if a.name not in axes]
         for combo in itertools.product(*(a.values for a in read)):
             labels = [(a.name, label) for a, (label, _) in zip(read, combo, strict=True)]
@@ -302,9 +340,8 @@ def _spec_from_dict(data: Any, path: Path, extra: tuple[str, ...]) -> SweepSpec:
             if key not in axes:
                 axes.append(key)
         explicit = point.get("name")
-        if explicit is not None and (not isinstance(explicit, str) or NAME_CHARS.search(explicit)):
-            raise ConfigError(f"{where}.name: expected a folder name (letters, digits, "
-                              f". _ + = -), got {explicit!r}")
+        if explicit is not None:
+            check_folder_name(explicit, f"{where}.name")
         drafts.append((where, labels, sets, explicit))
     if not drafts:
         raise ConfigError("no trials: the grid and the points are empty")
@@ -321,7 +358,8 @@ def _spec_from_dict(data: Any, path: Path, extra: tuple[str, ...]) -> SweepSpec:
             raise ConfigError(f"{where}.base: expected a config file or name, got {base!r}")
         trial_overrides = tuple(_override(k, _fill(v, label_map, f"{where}.{k}"))
                                 for k, v in items if k != BASE_KEY) + extra
-        trial_name = explicit or _trial_name(labels)
+        trial_name = explicit or check_folder_name(_trial_name(labels),
+                                                   f"{where}: a trial's name")
         if trial_name in names:
             raise ConfigError(f"{where}: two trials are named {trial_name!r} "
                               f"({names[trial_name]} and {where}); give points a `name`, or "
@@ -338,6 +376,8 @@ def _spec_from_dict(data: Any, path: Path, extra: tuple[str, ...]) -> SweepSpec:
             config = config_from_dict(
                 apply_overrides(base_data, trial_overrides, source=str(resolved)),
                 source=str(resolved))
+            check_ray_overrides(config, trial_overrides)
+            check_levels_admitted(config)
         except ConfigError as err:
             raise ConfigError(f"{where}, trial {trial_name}: {err}") from None
         trials.append(Trial(trial_name, tuple(labels), config, trial_overrides, str(resolved)))
@@ -352,15 +392,15 @@ def _spec_from_dict(data: Any, path: Path, extra: tuple[str, ...]) -> SweepSpec:
             hint = (f"; does the named axis {', '.join(map(repr, unused))} set anything (a "
                     "misspelt config key, a label no {template} uses)?" if unused else "")
             raise ConfigError(f"trials {other} and {trial.name} have the same config{hint}")
-    resources = _resources(data.get("resources") or {})
+    resources = resources_from(data.get("resources") or {})
     max_concurrent = data.get("max_concurrent", 0)
     if isinstance(max_concurrent, bool) or not isinstance(max_concurrent, int) or (
             max_concurrent < 0):
         raise ConfigError(f"max_concurrent: expected an integer >= 0 (0: as many as the "
                           f"resources allow), got {max_concurrent!r}")
     parent = data.get("dir", "sweeps")
-    if not isinstance(parent, str) or not parent:
-        raise ConfigError(f"dir: expected a folder, got {parent!r}")
+    if not isinstance(parent, str) or not parent or "\0" in parent:
+        raise ConfigError(f"dir: expected a folder, got {parent!r:.80}")
     report = data.get("report") or {}
     if not isinstance(report, Mapping):
         raise ConfigError("report: expected a mapping (seed_axis, line_axis, figure_axis)")
@@ -371,30 +411,42 @@ def _spec_from_dict(data: Any, path: Path, extra: tuple[str, ...]) -> SweepSpec:
             raise ConfigError(f"report.{key}: {value!r} is no axis (axes: {', '.join(axes)})")
     description = data.get("description", "")
     return SweepSpec(name, str(path), tuple(trials), tuple(axes), resources, max_concurrent,
-                     parent, str(description), ReportAxes(**report))
+                     parent, str(description), ReportAxes(**report), extra)
 
 
-def _resources(data: Any) -> Resources:
+def resources_from(data: Any, base: Resources | None = None,
+                   names: Mapping[str, str] | None = None) -> Resources:
+    """`base` (default: the defaults) with the values of `data` (cpus, gpus, explorers),
+    checked: finite numbers >= 0, explorers an integer up to `MAX_EXPLORERS`, some CPUs or a
+    GPU fraction. `names`: what to call each key in an error (`--cpus`); default
+    `resources.KEY`."""
     if not isinstance(data, Mapping):
         raise ConfigError("resources: expected a mapping (cpus, gpus, explorers)")
     for key in data:
         if key not in RESOURCE_KEYS:
             raise ConfigError(f"resources.{key}: unknown key (allowed: "
                               f"{', '.join(RESOURCE_KEYS)})")
+    name = lambda key: (names or {}).get(key, f"resources.{key}")
     out = {}
-    for key, lowest in (("cpus", 0.0), ("gpus", 0.0), ("explorers", 0)):
+    for key in RESOURCE_KEYS:
         if key not in data:
             continue
         value = data[key]
-        if isinstance(value, bool) or not isinstance(value, int | float) or value < lowest:
-            raise ConfigError(f"resources.{key}: expected a number >= {lowest}, got {value!r}")
-        if key == "explorers" and value != int(value):
-            raise ConfigError(f"resources.explorers: expected an integer, got {value!r}")
-        out[key] = int(value) if key == "explorers" else float(value)
-    resources = Resources(**out)
+        if (isinstance(value, bool) or not isinstance(value, int | float)
+                or not math.isfinite(value) or value < 0):
+            raise ConfigError(f"{name(key)}: expected a finite number >= 0, got {value!r}")
+        if key == "explorers":
+            if value != int(value) or value > MAX_EXPLORERS:
+                raise ConfigError(f"{name(key)}: expected an integer in [0, {MAX_EXPLORERS}] "
+                                  f"(one CPU each beside the trial), got {value!r}")
+            value = int(value)
+        out[key] = value if key == "explorers" else float(value)
+    resources = replace(base or Resources(), **out)
     if resources.cpus == 0 and resources.gpus == 0:
-        raise ConfigError("resources: a trial needs some CPUs or a GPU fraction")
+        raise ConfigError(f"{name('cpus')}, {name('gpus')}: a trial needs some CPUs or a GPU "
+                          "fraction")
     return resources
 
 
-__all__ = ["ReportAxes", "Resources", "SweepSpec", "Trial", "read_sweep_spec"]
+__all__ = ["MAX_EXPLORERS", "MAX_NAME_BYTES", "MAX_TRIALS", "ReportAxes", "Resources",
+           "SweepSpec", "Trial", "check_folder_name", "read_sweep_spec", "resources_from"]

@@ -120,13 +120,28 @@ _HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 
 _SETTINGS_FRAME = 4
 
 
-def check_reachable(address: str, setting: str = "ray.address", timeout_s: float = 5.0
-                    ) -> None:
-    """Fail fast, in one line naming `setting` (where the address came from), where no Ray
-    head answers at HOST:PORT: nothing listens, or something that is not a gRPC server (a Ray
-    head's GCS speaks gRPC). A URL is refused as it is: `http(s)://` is a dashboard's address
-    (for `ray job submit`), `ray://` a Ray Client server's, and the driver of a run must
-    join the GCS itself (it reads Ray's own reference table and the actors' node ids)."""
+def _host_port(target: str, address: str, setting: str) -> tuple[str, int]:
+    """(host, port) of HOST:PORT, [IPv6]:PORT included; a ConfigError naming `setting`."""
+    host, sep, port = target.rpartition(":")
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+    if not sep or not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+        raise ConfigError(f"{setting}: expected 'auto' or HOST:PORT (the head's GCS address, "
+                          f"a port in 1..65535), got {address!r:.200}")
+    return host, int(port)
+
+
+def check_reachable(address: str, setting: str | None = None, timeout_s: float = 5.0,
+                    name: str | None = None) -> None:
+    """Fail fast, in one line naming `setting` (where the address came from; default
+    `ray.address`, or `RAY_ADDRESS` where the address is that variable's), where no Ray head
+    answers at HOST:PORT ([IPv6]:PORT too): nothing listens, or something that is not a gRPC
+    server (a Ray head's GCS speaks gRPC). A URL is refused as it is: `http(s)://` is a
+    dashboard's address (for `ray job submit`), `ray://` a Ray Client server's, and the driver
+    of a run must join the GCS itself (it reads Ray's own reference table and the actors' node
+    ids)."""
+    setting = setting or name or (
+        "RAY_ADDRESS" if os.environ.get("RAY_ADDRESS") == address else "ray.address")
     if address in ("auto", "local"):
         return
     scheme, sep, _ = address.partition("://")
@@ -140,12 +155,9 @@ def check_reachable(address: str, setting: str = "ray.address", timeout_s: float
         raise ConfigError(f"{setting}: {address!r:.200} is {what}; a run joins the head's GCS "
                           f"address HOST:PORT (ray start --head prints it; port 6379 by "
                           f"default) or 'auto'")
-    host, sep, port = address.rpartition(":")
-    if not sep or not host or not port.isdigit():
-        raise ConfigError(f"{setting}: expected 'auto' or HOST:PORT (the head's GCS address), "
-                          f"got {address!r:.200}")
+    host, port = _host_port(address, address, setting)
     try:
-        with socket.create_connection((host, int(port)), timeout=timeout_s) as sock:
+        with socket.create_connection((host, port), timeout=timeout_s) as sock:
             sock.sendall(_HTTP2_PREFACE)
             answer = b""
             while len(answer) < 9:

@@ -28,6 +28,7 @@ import jax
 
 from level_buffer import LevelBuffer
 from level_buffer.fileformat import BufferFileError
+from tabx.files import not_a_file
 from ued.checkpoint import CheckpointError, Checkpoints
 from ued.config import ConfigError, TrainConfig
 from ued.errors import gist
@@ -43,6 +44,7 @@ class StepCheck:
     checkpoint: str | None  # None: restores
     snapshot: str | None  # None: reads back (or the run keeps none)
     note: str | None = None  # what a resume from it has to change to go on
+    checked: bool = True  # the checkpoint's arrays compared with digests recorded at saving
 
     @property
     def intact(self) -> bool:
@@ -82,8 +84,11 @@ def snapshot_problem(levels_dir: Path, step: int, needs_buffer: bool,
     """What keeps the level snapshot of `step` from reading back, or None; with `checkpoints`,
     also a snapshot file changed since checkpoint `step` recorded its digest."""
     state = levels_dir / f"state-{step}.json"
-    if not state.is_file():
+    kind = not_a_file(state)
+    if kind == "missing":
         return f"{state}: missing (the snapshot of step {step} is incomplete)"
+    if kind is not None:  # never opened: a device or FIFO could block or never end
+        return f"{state}: {kind}"
     try:
         problem = state_problem(json.loads(state.read_text()))
     except (OSError, UnicodeDecodeError, ValueError, RecursionError) as err:
@@ -93,10 +98,13 @@ def snapshot_problem(levels_dir: Path, step: int, needs_buffer: bool,
     for name, required in (("buffer", needs_buffer), ("learnable", False),
                            ("sfl-window", False), ("parents", False)):
         path = levels_dir / f"{name}-{step}.msgpack"
-        if not path.is_file():
+        kind = not_a_file(path)
+        if kind == "missing":
             if required:
                 return f"{path}: missing"
             continue
+        if kind is not None:
+            return f"{path}: {kind}"
         try:
             LevelBuffer.load(path)
         except (BufferFileError, OSError) as err:
@@ -243,7 +251,8 @@ def check_run(run_dir: Path, checkpoints: Checkpoints, template: Any = None, *,
         if snapshots and snapshot is None and config is not None:
             snapshot, note = parents_check(levels_dir, step, config)
         checks.append(StepCheck(step, checkpoint_problem(checkpoints, template, step,
-                                                         key_template)[0], snapshot, note))
+                                                         key_template)[0], snapshot, note,
+                                checkpoints.has_digests(step)))
     return checks
 
 
@@ -306,8 +315,10 @@ def format_checks(run_dir: str | Path, checks: list[StepCheck]) -> str:
     lines = [f"{run_dir}: {len(checks)} checkpointed steps"]
     for check in checks:
         if check.intact:
-            lines.append(f"  step {check.step}: intact" + (f" ({check.note})" if check.note
-                                                           else ""))
+            lines.append(f"  step {check.step}: intact" + (
+                "" if check.checked else " as far as it was checked: the checkpoint records "
+                "no digests (its _CHECKPOINT_METADATA is missing or unreadable), so its array "
+                "values are unchecked") + (f" ({check.note})" if check.note else ""))
             continue
         parts = [f"{what}: {problem}" for what, problem in (("checkpoint", check.checkpoint),
                                                             ("snapshot", check.snapshot))

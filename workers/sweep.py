@@ -20,6 +20,7 @@ checkpoint, up to `max_failures` times.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
@@ -33,6 +34,7 @@ from typing import Any, TextIO
 from ued.config import ConfigError
 from ued.sweep_folder import SweepFolder
 from ued.sweep_spec import SweepSpec
+from workers.process_guard import ProcessGuard
 from workers.sweep_table import SweepTable
 
 MAX_FAILURES = 2  # Tune's retries of a trial that raised (not a failed config: that is final)
@@ -87,8 +89,8 @@ def worker_env(spec: SweepSpec) -> dict[str, str]:
     return env
 
 
-def connect(spec: SweepSpec, address: str | None, num_cpus: int | None) -> tuple[Any, bool]:
-    """Ray, connected to `address` or started here; (ray, whether this call started it)."""
+def import_tune() -> Any:
+    """Ray, with Tune importable, or a ConfigError that says how to install it."""
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     # Tune's own console output: the sweep draws its table instead.
     os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")
@@ -97,6 +99,60 @@ def connect(spec: SweepSpec, address: str | None, num_cpus: int | None) -> tuple
         from ray import tune  # noqa: F401 - fail here, with the install hint, if absent
     except ImportError:
         raise ConfigError("tabx sweep needs Ray Tune: pip install -e '.[ray]'") from None
+    return ray
+
+
+def _bundle_text(bundle: dict[str, float]) -> str:
+    return " and ".join(f"{v:g} {k}" for k, v in bundle.items())
+
+
+def check_local_fit(spec: SweepSpec, num_cpus: int | None) -> None:
+    """On a Ray started here (one node, nothing joins it): refuse trials that node cannot hold,
+    before the sweep folder is written (Tune would keep every trial pending for ever). The
+    machine's CPUs and GPUs as `tabx train --ray` reads them (`workers.ray_start`)."""
+    from workers.ray_start import local_resources
+
+    ray = import_tune()
+    if ray.is_initialized():  # a Ray this process started before (tests): what it has
+        resources = ray.cluster_resources()
+        have = {k: float(resources.get(k, 0.0)) for k in ("CPU", "GPU")}
+    else:
+        cpus, gpus = local_resources()
+        have = {"CPU": float(num_cpus or cpus), "GPU": float(gpus)}
+    bundles = spec.resources.bundles()
+    need = {k: sum(b.get(k, 0.0) for b in bundles) for k in ("CPU", "GPU")}
+    short = [k for k in need if need[k] > have[k] + 1e-9]
+    if short:
+        what = {"CPU": "--num-cpus, or fewer CPUs a trial (--cpus, resources.cpus"
+                       + (", resources.explorers" if spec.resources.explorers else "") + ")",
+                "GPU": "a smaller GPU fraction a trial (--gpus, resources.gpus), or a cluster "
+                       "with GPUs (--address)"}[short[0]]
+        raise ConfigError(f"resources: a trial holds {need[short[0]]:g} {short[0]}"
+                          + (f" ({spec.resources.cpus:g} and one per Explorer)"
+                             if short[0] == "CPU" and spec.resources.explorers else "")
+                          + f", but the Ray started here has {have[short[0]]:g}: no trial could "
+                          f"start; give {what}")
+
+
+def warn_unfit_cluster(ray: Any, spec: SweepSpec, stream: TextIO) -> None:
+    """On a cluster (nodes may join: an autoscaler): say so where no node that is up now can
+    hold a trial's own bundle, or the cluster all of its bundles; its trials wait."""
+    nodes = [n.get("Resources", {}) for n in ray.nodes() if n.get("Alive")]
+    own, *rest = spec.resources.bundles()
+    total = {k: sum(n.get(k, 0.0) for n in nodes) for k in ("CPU", "GPU")}
+    need = {k: sum(b.get(k, 0.0) for b in (own, *rest)) for k in ("CPU", "GPU")}
+    if not any(all(n.get(k, 0.0) + 1e-9 >= v for k, v in own.items()) for n in nodes):
+        stream.write(f"sweep: warning: no node of the cluster can hold a trial "
+                     f"({_bundle_text(own)} on one node); the trials wait until one joins\n")
+    elif any(need[k] > total[k] + 1e-9 for k in need):
+        stream.write(f"sweep: warning: a trial holds {_bundle_text(need)} but the cluster has "
+                     f"{_bundle_text(total)}; the trials wait until nodes join\n")
+    stream.flush()
+
+
+def connect(spec: SweepSpec, address: str | None, num_cpus: int | None) -> tuple[Any, bool]:
+    """Ray, connected to `address` or started here; (ray, whether this call started it)."""
+    ray = import_tune()
     if ray.is_initialized():
         return ray, False
     kwargs: dict[str, Any] = {"logging_level": "ERROR", "log_to_driver": False,
@@ -104,8 +160,7 @@ def connect(spec: SweepSpec, address: str | None, num_cpus: int | None) -> tuple
     if address:
         from workers.ray_start import check_reachable
 
-        if address != "auto":
-            check_reachable(address)
+        check_reachable(address, name="--address")
         kwargs["address"] = address
     else:
         kwargs.update(address="local", include_dashboard=False)
@@ -195,6 +250,8 @@ def run_sweep(spec: SweepSpec, folder: str | Path | None = None, *, resume: bool
     if resume and not sweep.exists():
         raise ConfigError(f"{sweep.path}: no sweep to resume (no sweep.json); start it "
                           f"without --resume")
+    if not address:
+        check_local_fit(spec, num_cpus)
     sweep.write(spec, resume=resume)
     outcome = SweepOutcome(sweep.path)
     pending = []
@@ -215,7 +272,17 @@ def run_sweep(spec: SweepSpec, folder: str | Path | None = None, *, resume: bool
         out.write(f"{sweep.path}: every trial is finished; `tabx sweep report {sweep.path}`\n")
         return outcome
 
-    ray, started = connect(spec, address, num_cpus)
+    # A Ray started here ends with this process, however it ends (`workers.process_guard`).
+    guard = None if address or import_tune().is_initialized() else ProcessGuard()
+    try:
+        with guard.marking() if guard is not None else contextlib.nullcontext():
+            ray, started = connect(spec, address, num_cpus)
+    except BaseException:
+        if guard is not None:
+            guard.close()
+        raise
+    if address:
+        warn_unfit_cluster(ray, spec, out)
     try:
         from ray import tune
 
@@ -245,6 +312,8 @@ def run_sweep(spec: SweepSpec, folder: str | Path | None = None, *, resume: bool
     finally:
         if started:
             ray.shutdown()
+        if guard is not None:
+            guard.close()
     seen = set()
     for result in results:
         if result.config is None:  # Ctrl-C before Tune started it: no config, no record

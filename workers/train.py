@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import TextIO
 
 from ued import compile_cache
-from ued.config import ConfigError, RaySection, TrainConfig
+from ued.config import ConfigError, RaySection, TrainConfig, check_levels_admitted
 from ued.experiment import check_devices, check_memory, scenario_levels
 from ued.run_folder import (
     check_writable,
@@ -95,6 +95,7 @@ def train(config: TrainConfig | None = None, *, run_dir: str | Path | None = Non
                 return Path(run_dir)
             return _start(driver, config, Path(run_dir), resume, max_updates, progress,
                           stream, callback)
+    check_levels_admitted(config)
     _check_start(driver, config)
     run_dir = create_run_dir(config, run_dir)
     with nullcontext() if locked else lock_run_dir(run_dir):

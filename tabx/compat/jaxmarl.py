@@ -35,12 +35,15 @@ the extra.
 
 from __future__ import annotations
 
+import math
+import numbers
 import warnings
 from collections.abc import Callable
 from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 try:
@@ -56,6 +59,7 @@ from tabx.env import TabxEnv
 from tabx.marl import TabxMarlEnv
 from tabx.params import EnvConfig, EnvParams, level_config
 from tabx.scenarios import load_named
+from tabx.scenarios.format import START_NOISE_RANGE
 from tabx.state import EnvState
 
 # Keyword arguments of JaxMARL's SMAX / HeuristicEnemySMAX that the baselines' configs put in
@@ -168,6 +172,27 @@ class TabxJaxMARLEnv(MultiAgentEnv):
                 "enemy": [a for a in self.agents if a.startswith("enemy")]}
 
 
+def _check_arguments(max_steps: Any, start_noise: Any, shuffle_positions: Any) -> None:
+    """ValueError naming the argument of `make_env` that is out of its range: `max_steps` an
+    integer in [1, 2**31 - 1] (10.7 is not 10), `start_noise` a finite number in the range a
+    scenario file allows, `shuffle_positions` true or false (the string "no" is not false)."""
+    integral = (isinstance(max_steps, numbers.Integral) or isinstance(max_steps, float)
+                and max_steps.is_integer()) and not isinstance(max_steps, bool | np.bool_)
+    if not integral or not 1 <= max_steps <= C.MAX_STEPS:
+        raise ValueError(f"make_env: max_steps must be an integer in [1, 2**31 - 1], got "
+                         f"{max_steps!r}")
+    if start_noise is not None:
+        ok = (isinstance(start_noise, numbers.Real) and not isinstance(start_noise, bool | np.bool_)
+              and math.isfinite(start_noise) and START_NOISE_RANGE.contains(float(start_noise)))
+        if not ok:
+            raise ValueError(f"make_env: start_noise must be a number of world units in "
+                             f"[{START_NOISE_RANGE.lo:g}, {START_NOISE_RANGE.hi:g}], got "
+                             f"{start_noise!r}")
+    if shuffle_positions is not None and not isinstance(shuffle_positions, bool | np.bool_):
+        raise ValueError(f"make_env: shuffle_positions must be True or False, got "
+                         f"{shuffle_positions!r}")
+
+
 def make_env(name_or_path: str, opponent: str = "heuristic:medium",
              max_steps: int = C.DEFAULT_MAX_STEPS, team: str = "ally",
              start_noise: float | None = None, shuffle_positions: bool | None = None,
@@ -187,6 +212,7 @@ def make_env(name_or_path: str, opponent: str = "heuristic:medium",
     if smax_kwargs:
         warnings.warn(f"make_env ignores SMAX-only keyword arguments {sorted(smax_kwargs)}: "
                       "TABX has no counterpart for them", stacklevel=2)
+    _check_arguments(max_steps, start_noise, shuffle_positions)
     level = load_named(name_or_path).to_level()
     if start_noise is not None:
         level = level.replace(start_noise=jnp.float32(start_noise))
