@@ -739,7 +739,7 @@ def check_levels_admitted(config: TrainConfig) -> None:
     first, so the buffer may stay empty for ever: Robust PLR, which trains on buffer levels
     alone, then trains nothing, and PLR and ACCEL are domain randomisation in effect. (Checked
     for new runs, not in `validate`: a run folder of such a config still reads.)"""
-    if not config.ued.enabled or not CURRICULA[config.ued.method].uses_buffer:
+    if not config.ued.enabled or not curriculum_class(config.ued.method).uses_buffer:
         return
     _check(config.learner.num_steps >= config.env.max_steps, "learner.num_steps",
            f"{config.learner.num_steps} steps per rollout, below env.max_steps "
