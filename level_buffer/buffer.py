@@ -24,7 +24,6 @@ import dataclasses
 import json
 import os
 from collections.abc import Sequence
-from functools import lru_cache
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -60,13 +59,6 @@ class Replay(NamedTuple):
     scores: np.ndarray  # float64 (n,) scores before replay
     max_returns: np.ndarray  # float64 (n,) best return seen so far (MaxMC's R_max)
     depths: np.ndarray  # int64 (n,) lineage depth (a mutation's child has depth + 1)
-
-
-@lru_cache(maxsize=16)
-def _rank_profile(n: int, temperature: float) -> np.ndarray:
-    profile = W.rank_profile(n, temperature)
-    profile.setflags(write=False)
-    return profile
 
 
 def _check_scores(scores: Any, n: int, what: str) -> np.ndarray:
@@ -221,12 +213,7 @@ class LevelBuffer:
                                 self._slots["timestamp"][: self.size], self.clock, self.config)
 
     def _score_weights_from_order(self, order: np.ndarray) -> np.ndarray:
-        n = self.size
-        if self.config.prioritization == "rank":
-            w = np.zeros(n)
-            w[order] = _rank_profile(n, float(self.config.temperature))
-            return w
-        return W.score_weights(self._slots["score"][:n], self.config, order)
+        return W.score_weights(self._slots["score"][: self.size], self.config, order)
 
     # --- replay ------------------------------------------------------------------------------
 

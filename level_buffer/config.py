@@ -13,6 +13,8 @@ import math
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
+from level_buffer.prioritization import PRIORITIZATIONS
+
 
 class Source(enum.IntEnum):
     """Where a level in the buffer came from (stored as int8)."""
@@ -23,7 +25,6 @@ class Source(enum.IntEnum):
     LOADED = 3  # read from a scenario file or an older buffer
 
 
-PRIORITIZATIONS = ("rank", "topk")
 
 
 @dataclass(frozen=True)
@@ -53,7 +54,7 @@ class BufferConfig:
             if not isinstance(value, (int, float)) or not 0.0 <= value <= 1.0:
                 raise bad(name, "a number in [0, 1]")
         if self.prioritization not in PRIORITIZATIONS:
-            raise bad("prioritization", f"one of {PRIORITIZATIONS}")
+            raise bad("prioritization", f"one of {tuple(PRIORITIZATIONS)}")
         if not isinstance(self.temperature, (int, float)) or not (
                 self.temperature > 0 and math.isfinite(self.temperature)):
             raise bad("temperature", "a finite number > 0")

@@ -2,9 +2,7 @@
 
     P_replay = (1 - staleness_coeff) * P_score + staleness_coeff * P_staleness
 
-* rank:  slots sorted by score, best first (ties: lower slot first), h_i = 1 / rank_i,
-         P_score ∝ h_i ** (1 / temperature)
-* topk:  P_score = softmax of the raw scores of the min(k, size) best slots, 0 elsewhere
+* P_score: the config's prioritisation (`level_buffer.prioritization`: rank, topk, uniform)
 * staleness: s_i = clock - timestamp_i, P_staleness = s / sum(s), uniform if all are 0
 
 These are JaxUED's `LevelSampler.level_weights` semantics. Every function takes the arrays of
@@ -16,17 +14,12 @@ from __future__ import annotations
 import numpy as np
 
 from level_buffer.config import BufferConfig
+from level_buffer.prioritization import PRIORITIZATIONS
 
 
 def score_order(scores: np.ndarray) -> np.ndarray:
     """Slot indices sorted best score first; a stable sort, so ties keep slot order."""
     return np.argsort(-np.asarray(scores, np.float64), kind="stable")
-
-
-def rank_profile(n: int, temperature: float) -> np.ndarray:
-    """The rank weights in rank order: (1/rank)^(1/temperature), normalised."""
-    h = (1.0 / np.arange(1, n + 1, dtype=np.float64)) ** (1.0 / temperature)
-    return h / h.sum()
 
 
 def score_weights(scores: np.ndarray, config: BufferConfig,
@@ -38,18 +31,7 @@ def score_weights(scores: np.ndarray, config: BufferConfig,
         return np.zeros(0)
     if order is None:
         order = score_order(scores)
-    w = np.zeros(n)
-    if config.prioritization == "rank":
-        w[order] = rank_profile(n, config.temperature)
-    else:  # topk
-        top = order[: min(n, config.topk_k)]
-        s = scores[top]
-        if np.isneginf(s).all():  # nothing finished anywhere: no preference among the top
-            w[top] = 1.0 / len(top)
-        else:
-            e = np.exp(s - s.max())
-            w[top] = e / e.sum()
-    return w
+    return PRIORITIZATIONS[config.prioritization].weights(scores, order, config)
 
 
 def staleness_weights(timestamps: np.ndarray, clock: int) -> np.ndarray:

@@ -4,6 +4,7 @@
     tabx bench profile                             per-stage step time (tabx_bench.stage_profile)
     tabx bench train                               training throughput (tabx_bench.train)
     tabx bench ued                                 a UED run, local and on Ray (tabx_bench.ued)
+    tabx bench gpu                                 all of it at the paper's sizes (tabx_bench.gpu)
 
 The measuring code lives in those modules; this one only turns command lines into calls.
 """
@@ -19,6 +20,7 @@ from tabx_bench.arguments import (
     non_negative_ints,
     team_sizes,
 )
+from tabx_bench.gpu import add_gpu_bench
 from tabx_bench.simulator import NUM_ENVS, TEAM_SIZES, bench_env
 from tabx_bench.stage_profile import bench_profile
 from tabx_bench.suite import (
@@ -55,6 +57,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse._SubParsersAc
     add_suite_parsers(which)
     add_train_bench(which)
     add_ued_bench(which)
+    add_gpu_bench(which)
     return which
 
 

@@ -156,7 +156,7 @@ class RayStepper:
     `ray.deterministic` the local driver's schedule over the actors (the local work)."""
 
     def __init__(self, ray: Any, config: TrainConfig, stream: TextIO):
-        from workers.actor_manager import ActorDeaths
+        from workers.actor_manager import ActorDeaths, ActorManager
         from workers.ray_async import AsyncRun
         from workers.ray_handles import ExplorerPool, RemoteLearner
         from workers.ray_restarts import RemoteService
@@ -168,11 +168,14 @@ class RayStepper:
         self.driver = ("ray-deterministic" if config.ray.deterministic else
                        "ray-continuous" if continuous else "ray")
         # One RemoteService for the run and the schedule: it numbers the state-changing calls.
-        service = RemoteService(ray, self.workers.service, ActorDeaths(None))
-        self.run = UEDRun(config, service, ExplorerPool(ray, self.workers.scorers()))
+        actors = ActorManager(ray, ActorDeaths(None))
+        self.workers.register(actors)
+        service = RemoteService(ray, self.workers.service, actors)
+        self.run = UEDRun(config, service, ExplorerPool(ray, self.workers.scorers(),
+                                                        self.workers.scorer_names(), actors))
         self.key, k_init = jax.random.split(jax.random.key(config.seed))
         ray.get(self.workers.learner.init.remote(k_init))
-        self.learner = RemoteLearner(ray, self.workers.learner)
+        self.learner = RemoteLearner(ray, self.workers.learner, actors)
         if continuous:
             from workers.continuous import ContinuousRun
 

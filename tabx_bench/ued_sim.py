@@ -147,7 +147,7 @@ class SimResult:
 def simulate(ray: Any, config: TrainConfig, explorers: int, batch_s: float, learner_s: float,
              seconds: float, per_process: int = 8, param_mb: float = 1.0) -> SimResult:
     """One setting: `explorers` stand-ins, timed for `seconds` after the buffer filled."""
-    from workers.actor_manager import ActorDeaths
+    from workers.actor_manager import ActorDeaths, ActorManager
     from workers.actors import LevelServiceActor
     from workers.continuous import ContinuousRun
     from workers.ray_handles import ExplorerPool, RemoteLearner
@@ -177,9 +177,13 @@ def simulate(ray: Any, config: TrainConfig, explorers: int, batch_s: float, lear
         try:
             ray.get([a.ready.remote() for a in actors])
             workers = Workers(service_actor, learner_actor, handles, None, 0.0)
-            service = RemoteService(ray, service_actor, ActorDeaths(None))
-            run = UEDRun(config, service, ExplorerPool(ray, workers.scorers()))
-            schedule = ContinuousRun(ray, config, run, RemoteLearner(ray, learner_actor),
+            manager = ActorManager(ray, ActorDeaths(None))
+            workers.register(manager)
+            service = RemoteService(ray, service_actor, manager)
+            run = UEDRun(config, service, ExplorerPool(ray, workers.scorers(),
+                                                       workers.scorer_names(), manager))
+            schedule = ContinuousRun(ray, config, run, RemoteLearner(ray, learner_actor,
+                                                                     manager),
                                      workers, service)
             key = jax.random.key(config.seed)
             step = 0

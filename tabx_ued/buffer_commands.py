@@ -27,6 +27,7 @@ import numpy as np
 from level_buffer.buffer import LevelBuffer
 from level_buffer.config import Source
 from level_buffer.fileformat import FORMAT_VERSION, BufferFileError
+from level_buffer.prioritization import PRIORITIZATIONS
 from level_buffer.tree import named_leaves
 from tabx.errors import UserError
 
@@ -119,8 +120,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 def summary(buf: LevelBuffer, name: str, size_bytes: int) -> str:
     """What `tabx buffer inspect` prints of a buffer (`name`: where it came from)."""
     cfg = buf.config
-    prio = (f"rank temperature {cfg.temperature:g}" if cfg.prioritization == "rank"
-            else f"top-{cfg.topk_k}")
+    prio = PRIORITIZATIONS[cfg.prioritization].describe(cfg)
     dup = ("off" if not cfg.duplicate_check else
            f"near (atol {cfg.near_duplicate_atol:g})" if cfg.near_duplicates else "exact")
     lines = [

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import subprocess
 import sys
 from collections.abc import Callable, Iterable, Mapping
@@ -123,11 +124,27 @@ def run(argv: list[str] | None, registrars: Iterable[Registrar], routes: Routes 
         if problem is not None:
             print(f"tabx {args.command}: error: {problem}", file=sys.stderr)
             return 2
-        text = str(err).strip().splitlines()[0] if str(err).strip() else ""
-        print(f"tabx {args.command}: error: {type(err).__name__}{': ' if text else ''}{text} "
-              f"(unexpected: run `tabx --debug {args.command} ...` or set TABX_DEBUG=1 for "
-              f"the traceback)", file=sys.stderr)
+        print(f"tabx {args.command}: error: {error_line(err)} (unexpected: run `tabx --debug "
+              f"{args.command} ...` or set TABX_DEBUG=1 for the traceback)", file=sys.stderr)
         return 1
+
+
+def error_line(err: BaseException) -> str:
+    """An unexpected error in one line: its type and first line. An error raised inside a Ray
+    actor (Ray's `RayTaskError(...)`, whose text is the actor's traceback, perhaps around
+    another actor's) is shown by the error the innermost actor raised, and its call."""
+    call = ""
+    while type(err).__name__.startswith("RayTaskError"):
+        cause = getattr(err, "cause", None)
+        if not isinstance(cause, BaseException) or cause is err:
+            break
+        first = re.sub(r"\x1b\[[0-9;]*m", "", str(err)).strip().split("\n")[0]
+        if first.startswith("ray::"):
+            call = first.removeprefix("ray::").split(" (pid=")[0]
+        err = cause
+    text = str(err).strip().splitlines()[0] if str(err).strip() else ""
+    where = f" (raised in the Ray actor call {call})" if call else ""
+    return f"{type(err).__name__}{': ' if text else ''}{text}{where}"
 
 
 def platform_problem() -> str | None:

@@ -4,6 +4,7 @@
     tabx sweep configs/sweeps/smoke_ued.yaml --resume        # finish what a killed sweep left
     tabx sweep sweeps/paper_ued --address auto               # on the cluster this machine is in
     tabx sweep report sweeps/smoke_ued                       # its tables and learning curves
+    tabx sweep report sweeps/smoke_ued --interval t95        # 95 % intervals, not s.e.
 
 The sweep file is `ued.sweep_spec`'s, the scheduling `workers.sweep`'s (Ray Tune), the report
 `ued.sweep_report`'s; docs/experiments.md walks from one run to the paper's table.
@@ -63,7 +64,7 @@ def cmd_sweep_report(args: argparse.Namespace) -> int:
 
     try:
         written = write_report(args.sweep_dir, out=args.out, partial=args.partial,
-                               stream=sys.stderr)
+                               stream=sys.stderr, interval=args.interval)
     except OSError as err:  # the output folder cannot be made or written
         where = f"--out: {args.out}" if args.out is not None else str(err.filename or "")
         raise ConfigError(f"{where}: cannot write the report there ({err.strerror or err}); "
@@ -111,6 +112,10 @@ def add_route_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", metavar="DIR", help="where to write (default SWEEP_DIR/report)")
     p.add_argument("--partial", action="store_true",
                    help="report the finished trials of an incomplete sweep")
+    p.add_argument("--interval", choices=("se", "t95"), default="se",
+                   help="the spread of each cell: se, the standard error of the mean over "
+                        "seeds (default, as the paper), or t95, half the 95 %% Student-t "
+                        "interval")
     p.set_defaults(func=cmd_sweep_report)
 
 

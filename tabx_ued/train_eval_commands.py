@@ -21,9 +21,11 @@ Training goes through `workers.train.train`, which picks the driver.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 from tabx.errors import UserError
 from tabx_ued.arguments import add_profile_argument
@@ -70,19 +72,9 @@ def cmd_train(args: argparse.Namespace) -> int:
                 raise UserError("--resume continues a run with its own config.yaml: give no "
                                 "config file, and overrides of the ray: section only "
                                 "(e.g. --ray ray.explorers=4)")
-            if overrides and not args.ray:
-                raise UserError("ray.* overrides on --resume go with --ray")
-            ray_overrides = [*overrides, *ray_overrides]
-            ray = None
-            if ray_overrides:
-                from ued.config import apply_overrides, config_from_dict
-                from ued.run_folder import read_run_config
-
-                own = read_run_config(args.resume).to_dict()
-                ray = config_from_dict(apply_overrides(own, ray_overrides),
-                                       source=f"{args.resume} with --ray").ray
             run_dir = train(run_dir=args.resume, resume=True, max_updates=args.max_updates,
-                            progress=not args.quiet, ray=ray)
+                            progress=not args.quiet,
+                            ray=resume_ray(args.resume, overrides, ray_overrides))
         else:
             if config_path is None:
                 raise UserError("give a config file or a shipped config's name (e.g. "
@@ -98,6 +90,36 @@ def cmd_train(args: argparse.Namespace) -> int:
         print(run_summary_lines(Path(run_dir)), file=sys.stderr)
     print(run_dir)
     return 0
+
+
+def resume_ray(run_dir: str, overrides: list[str], flags: list[str]) -> Any:
+    """The `ray:` section `tabx train --resume RUN_DIR` continues with (None: the run's own).
+    Without `--ray` the run resumes on the local driver, whichever driver trained it (the run
+    folder is the same): its own section with `ray.enabled: false`, which may be said. With
+    `--ray` (`flags`: `ray.enabled=true`, and `ray.address` of `--address`) its own section with
+    the `ray.*` `overrides`, on Ray."""
+    from ued.config import apply_overrides, config_from_dict
+    from ued.run_folder import read_run_config
+
+    on_ray = bool(flags)
+    if not on_ray:
+        stray = [o for o in overrides if o.split("=", 1)[0].strip() != "ray.enabled"]
+        if stray:
+            raise UserError(f"ray.* overrides on --resume go with --ray (got {stray[0]!r}); "
+                            f"without --ray the run resumes on the local driver")
+    own = read_run_config(run_dir)
+    if not overrides and not on_ray:
+        return dataclasses.replace(own.ray, enabled=False) if own.ray.enabled else None
+    source = f"{run_dir} with {' '.join([*overrides, *flags])}"
+    asked = config_from_dict(apply_overrides(own.to_dict(), overrides), source=source).ray
+    if on_ray and not asked.enabled:
+        raise UserError("ray.enabled=false: --ray resumes the run on Ray; give one of them")
+    if not on_ray:
+        if asked.enabled:
+            raise UserError("ray.enabled=true on --resume: give --ray to resume on Ray")
+        return asked
+    return config_from_dict(apply_overrides(own.to_dict(), [*overrides, *flags]),
+                            source=source).ray
 
 
 def run_summary_lines(run_dir: Path) -> str:

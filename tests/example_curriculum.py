@@ -1,11 +1,12 @@
-"""A worked example of adding a UED curriculum: the method's class and its registry entry.
+"""A curriculum registered by name: the method's class and its registry entry.
 
 `AlternatingReplay` alternates between training on fresh random levels and, once the level
 buffer has decided to replay, training on replayed ones: PLR with its replay decision taken
 at most every other step. It is a `ued.curricula.Curriculum` (which branch comes next, whether
 it trains) registered by name; after `import example_curriculum`, `ued.method:
-alternating_replay` is a valid config and `tabx train` runs it like any built-in method.
-tests/test_registry.py imports it.
+alternating_replay` is a valid config and `tabx train` runs it like any built-in method (a
+method used by import path needs no entry: examples/uniform_replay.py). tests/test_registry.py
+imports it.
 """
 
 from __future__ import annotations
@@ -28,8 +29,5 @@ class AlternatingReplay(Curriculum):
         return Branch.NEW
 
 
-# What the method needs, read without building it (config validation, `tabx runs check`, the
-# drivers): a level buffer, the config's regret score (ued.score), no Explorer-only steps.
-ENTRY = register_curriculum(CurriculumEntry(
-    "alternating_replay", AlternatingReplay, uses_buffer=True, scores=("ued.score",),
-    explorers=False))
+# Its name in configs; the class says what it needs (a level buffer, its branches).
+ENTRY = register_curriculum(CurriculumEntry("alternating_replay", AlternatingReplay))

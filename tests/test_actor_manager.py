@@ -151,9 +151,13 @@ def test_an_explorer_killed_by_the_memory_monitor_restarts_and_its_batch_is_reis
                       Handle(learner_actor, "1e" * 14), [Handle(explorer, "e0" * 14)], None, 0.0)
     learner_actor.init(jax.random.key(0))
     out = io.StringIO()
-    service = RemoteService(ray, workers.service, ActorDeaths(out))
-    run = UEDRun(config, service, ExplorerPool(ray, workers.scorers()), [])
-    schedule = AsyncRun(ray, config, run, RemoteLearner(ray, workers.learner), workers, service)
+    manager = ActorManager(ray, ActorDeaths(out))
+    workers.register(manager)
+    service = RemoteService(ray, workers.service, manager)
+    run = UEDRun(config, service, ExplorerPool(ray, workers.scorers(), workers.scorer_names(),
+                                               manager), [])
+    schedule = AsyncRun(ray, config, run, RemoteLearner(ray, workers.learner, manager), workers,
+                        service)
     key = jax.random.key(config.seed)
     branches = []
     for step in range(8):
@@ -169,6 +173,46 @@ def test_an_explorer_killed_by_the_memory_monitor_restarts_and_its_batch_is_reis
     new = schedule.stats.committed
     assert new >= 3  # the lost batch among them, committed once
     assert workers.service._obj.buffer.stats["insert_attempts"] == 4 * new
+
+
+def test_calls_in_flight_come_back_as_values_or_errors_and_lost_ones_are_sent_again():
+    # The manager keeps submitted calls in flight with their tags (a cap per actor for the
+    # caller to keep), sends a lost one again with the arguments of the moment (and its
+    # `before_send` hook), and hands back values, or an error for an optional call given up.
+    ray = FakeRay()
+    actors = ActorManager(ray, ActorDeaths(None), max_failures=2)
+
+    class Work:
+        def score(self, x):
+            return 10 * x
+
+    flaky = MemoryKilled(Work(), "score", {1}, "e3" * 14)  # its first call is killed
+    dead = MemoryKilled(Work(), "score", None, "e4" * 14)  # every call killed
+    actors.add("explorer-0", Handle(flaky, "e3" * 14), restarts=True)
+    actors.add("evaluator", Handle(dead, "e4" * 14), restarts=True)
+    policy = {"version": 1}
+    sent_with = []
+    batch = Call("explorer-0", "score", lambda: (policy["version"],),
+                 before_send=lambda: sent_with.append(policy["version"]))
+    actors.submit(batch, tag="batch-0")
+    actors.submit(Call.of("explorer-0", "score", 5), tag="batch-1")
+    assert actors.tags() == ["batch-0", "batch-1"]
+    assert not actors.has_room("explorer-0", 2) and actors.has_room("explorer-0", 3)
+    evaluation = Call.of("evaluator", "score", 7)
+    evaluation.optional = True
+    actors.submit(evaluation, tag="eval")
+    policy["version"] = 2  # the learner moved on before the loss was seen
+    done = actors.fetch_ready(["explorer-0"])
+    assert [(r.tag, r.value, r.error) for r in done] == [("batch-1", 50, None)]
+    assert actors.tags(["explorer-0"]) == ["batch-0"] and sent_with == [1, 2]
+    assert actors.resent["explorer-0"] == 1  # sent again with the current policy
+    assert [(r.tag, r.value) for r in actors.fetch_ready(["explorer-0"], block=True)] == [
+        ("batch-0", 20)]
+    given_up = []
+    while actors.in_flight(["evaluator"]):
+        given_up += actors.fetch_ready(["evaluator"])
+    assert [(r.tag, type(r.error).__name__) for r in given_up] == [("eval", "OutOfMemoryError")]
+    assert not actors.in_flight() and dead.calls == 2
 
 
 def test_a_call_lost_too_often_stops_the_run_and_an_optional_one_is_given_up():
@@ -203,8 +247,12 @@ def test_a_call_lost_too_often_stops_the_run_and_an_optional_one_is_given_up():
     assert actors.deaths.count == {"explorer-0": 6}
 
 
-def test_a_learner_killed_by_the_memory_monitor_stops_the_run_with_the_resume_command(
+def test_a_learner_killed_by_the_memory_monitor_restarts_the_run_then_stops_with_what_resume_does(
         tmp_path, monkeypatch, capsys):
+    """A learner the memory monitor kills at its first call, every time (a stand-in): the
+    run starts again from step 0 (it has no checkpoint) `ray.learner_restarts` times (2 by
+    default), each time saying so, then stops in one line naming the learner, the cause, the
+    spent budget and what `--resume` will do."""
     import workers.ray_driver as ray_driver
     from tabx_ued.cli import main
     from ued.run_folder import create_run_dir
@@ -224,10 +272,16 @@ def test_a_learner_killed_by_the_memory_monitor_stops_the_run_with_the_resume_co
     monkeypatch.setattr(ray_driver, "start_workers", lambda *args: workers)
     config = ued_config("robust_plr", **{"ray.enabled": "true", "ray.explorers": 0})
     run_dir = create_run_dir(config, tmp_path / "run")
-    assert main(["train", "--resume", str(run_dir), "--quiet"]) == 2
+    assert main(["train", "--resume", str(run_dir), "--ray", "--quiet"]) == 2
     err = capsys.readouterr().err
-    assert "learner died (Task was killed due to the node running low on memory.)" in err
-    assert f"continue from the last checkpoint with: tabx train --resume {run_dir}" in err
+    died = ("learner died (Task was killed due to the node running low on memory.) while the "
+            "run started")
+    for n in (1, 2):
+        assert (f"ray: {died}: restart {n} of 2 (ray.learner_restarts): the run has no "
+                f"checkpoint yet: it starts again from step 0; 0 steps lost (0 in all)") in err
+    assert err.strip().splitlines()[-1] == (
+        f"tabx train: error: {run_dir}: {died}; ray.learner_restarts (2) spent; no checkpoint "
+        f"yet: tabx train --resume {run_dir} starts it again from step 0")
     assert "Traceback" not in err and "unexpected" not in err
     record = json.loads((run_dir / RAY_RECORD).read_text())
     assert record["status"] == "stopped" and "learner died" in record["error"]
@@ -290,9 +344,13 @@ def continuous_run_with_deaths(config: Any, tmp_path: Any, scoring_call: str,
                       [Handle(explorer, "e0" * 14)], None, 0.0)
     learner_actor.init(jax.random.key(0))
     out = io.StringIO()
-    service = RemoteService(ray, workers.service, ActorDeaths(out))
-    run = UEDRun(config, service, ExplorerPool(ray, workers.scorers()), [])
-    schedule = ContinuousRun(ray, config, run, RemoteLearner(ray, workers.learner), workers,
+    manager = ActorManager(ray, ActorDeaths(out))
+    workers.register(manager)
+    service = RemoteService(ray, workers.service, manager)
+    run = UEDRun(config, service, ExplorerPool(ray, workers.scorers(), workers.scorer_names(),
+                                               manager), [])
+    schedule = ContinuousRun(ray, config, run, RemoteLearner(ray, workers.learner, manager),
+                             workers,
                              service)
     key = jax.random.key(config.seed)
     for step in range(steps):

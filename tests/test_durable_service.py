@@ -108,7 +108,7 @@ def work(service, key, steps: int, start: int = 0) -> list:
             replay = service.replay(4)
             service.update(replay.ids, np.linspace(0, 1, 4) + step, np.ones(4), step)
             out.append(replay.ids.tolist())
-            children = service.mutate_ids(k, replay.ids)
+            children = service.mutate(k, replay.levels)
             out.append(service.insert(children, np.full(4, 0.5 + step), np.ones(4), step, 1,
                                       replay.ids).status.tolist())
         else:

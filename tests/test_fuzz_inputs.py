@@ -762,15 +762,46 @@ def test_envs_that_cannot_fit_in_memory_are_refused_before_the_run_folder(tmp_pa
     assert not (tmp_path / "runs").exists()
 
 
-# --- options and settings a run would take silently, or fail on late ---------------------------
-
-
-def _closed_port() -> int:
+def free_port() -> int:
     import socket
 
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         return sock.getsockname()[1]
+
+
+# An address a run cannot join (`RAY_ADDRESS`, else `ray.address`): one line naming the setting
+# the user set, at once, before a run folder exists (Ray itself would fail with a cut
+# ValueError, or retry a closed `ray://` port for half a minute and blame the token).
+ADDRESSES = {
+    ("RAY_ADDRESS", "http://127.0.0.1:8265"): r"RAY_ADDRESS: 'http://127\.0\.0\.1:8265' is a "
+                                               r"dashboard's \(HTTP\) address",
+    ("RAY_ADDRESS", "ray://127.0.0.1:{port}"): r"RAY_ADDRESS: 'ray://127\.0\.0\.1:\d+' is a Ray "
+                                               r"Client address",
+    ("RAY_ADDRESS", "garbage"): r"RAY_ADDRESS: expected 'auto' or HOST:PORT .*'garbage'",
+    ("RAY_ADDRESS", "127.0.0.1:{port}"): r"RAY_ADDRESS: no Ray head answers at 127\.0\.0\.1:",
+    ("ray.address", "garbage"): r"ray\.address: expected 'auto' or HOST:PORT.*'garbage'",
+}
+
+
+@pytest.mark.parametrize("setting,address", list(ADDRESSES), ids=lambda v: v.split(":")[0])
+def test_an_address_no_run_can_join_is_one_line_naming_its_setting(setting, address, tmp_path,
+                                                                   capsys, monkeypatch):
+    config = tmp_path / "tiny.yaml"
+    config.write_text(ued_config("robust_plr").to_yaml())
+    value = address.format(port=free_port())
+    argv = ["train", str(config), "--ray", "--run-dir", str(tmp_path / "never"), "--quiet"]
+    if setting == "RAY_ADDRESS":
+        monkeypatch.setenv("RAY_ADDRESS", value)
+    else:
+        monkeypatch.delenv("RAY_ADDRESS", raising=False)
+        argv.append(f"ray.address={value}")
+    code, out, err = run_cli(capsys, argv)
+    assert_one_error(code, out, err, argv, f"{setting}: ", ADDRESSES[setting, address])
+    assert not (tmp_path / "never").exists()
+
+
+# --- options and settings a run would take silently, or fail on late ---------------------------
 
 
 TRAIN_ARGUMENTS = {
@@ -782,13 +813,13 @@ TRAIN_ARGUMENTS = {
                                                         r"ray\.explorers: a setting of runs"),
     "--address empty": (["--ray", "--address", ""], r"--address: empty"),
     "--address host:": (["--ray", "--address", "localhost:"],
-                        r"ray\.address: expected 'auto', HOST:PORT .*got 'localhost:'"),
+                        r"ray\.address: expected 'auto' or HOST:PORT .*got 'localhost:'"),
     "--address port 99999": (["--ray", "--address", "127.0.0.1:99999"],
                              r"ray\.address: expected .*a port in 1\.\.65535"),
     "--address http://": (["--ray", "--address", "http://127.0.0.1:{port}"],
-                          r"ray\.address: 'http://127\.0\.0\.1:\d+' is not a Ray address"),
+                          r"ray\.address: 'http://127\.0\.0\.1:\d+' is a dashboard's"),
     "--address ray:// closed": (["--ray", "--address", "ray://127.0.0.1:{port}"],
-                                r"ray\.address: no Ray Client server answers at ray://"),
+                                r"ray\.address: 'ray://127\.0\.0\.1:\d+' is a Ray Client address"),
     # An IPv6 host in brackets is reached (not looked up as the name "[::1]"): what listens
     # there is no Ray head.
     "--address [::1] of another server": (["--ray", "--address", "[::1]:{v6port}"],
@@ -818,7 +849,7 @@ def test_train_refuses_what_it_would_drop_or_fail_on_late(case, config_text, tmp
     path = tmp_path / "ok.yaml"
     path.write_text(config_text)
     args, pattern = TRAIN_ARGUMENTS[case]
-    with socket.socket(socket.AF_INET6) as server:  # answers every connection by closing it
+    with socket.socket(socket.AF_INET6) as server:  # a web server, as far as Ray can tell
         try:
             server.bind(("::1", 0))
         except OSError:
@@ -828,10 +859,13 @@ def test_train_refuses_what_it_would_drop_or_fail_on_late(case, config_text, tmp
         def refuse() -> None:
             with contextlib.suppress(OSError):  # the server closed
                 while True:
-                    server.accept()[0].close()
+                    connection = server.accept()[0]
+                    with connection:
+                        connection.recv(4096)
+                        connection.sendall(b"HTTP/1.1 400 Bad Request\r\n\r\n")
 
         threading.Thread(target=refuse, daemon=True).start()
-        ports = {"port": _closed_port(), "v6port": server.getsockname()[1]}
+        ports = {"port": free_port(), "v6port": server.getsockname()[1]}
         argv = ["train", str(path), *(a.format(**ports) for a in args),
                 f"run.dir={tmp_path / 'runs'}", "--quiet", "--max-updates", "1"]
         before = tree(tmp_path)

@@ -158,73 +158,93 @@ def test_learner_group_settings_are_checked():
     assert ued_config("robust_plr", **{"ray.enabled": "true", "ray.learners": 2}).ray.learners == 2
 
 
-def test_a_learner_group_restart_counts_the_steps_since_the_checkpoint(tmp_path):
+def test_a_restart_counts_the_steps_since_the_checkpoint():
     """`Restarts` (the Ray driver's restart after a lost learner): the next session resumes
-    from the newest checkpoint, the steps done since it are lost and counted, and the call's
-    `max_updates` still ends where it would have (the Ray run: tests/test_ray_driver.py,
-    -m slow)."""
+    from the newest intact checkpoint (step 0 where there is none), the steps done since it
+    are lost and counted, and the call's `max_updates` still ends where it would have; the
+    line says what died, which restart it is and where the run continues (the Ray runs:
+    tests/test_ray_driver.py)."""
     import io
 
-    import jax
-    import jax.numpy as jnp
-
-    from ued.checkpoint import Checkpoints
-    from ued.run_folder import CHECKPOINT_DIR
     from workers.learner_group import Restarts
 
-    with Checkpoints(tmp_path / CHECKPOINT_DIR) as checkpoints:
-        checkpoints.save(4, {"w": jnp.zeros(2)}, jax.random.key(0))
-    restarts, out = Restarts(2), io.StringIO()
+    restarts, out = Restarts(3), io.StringIO()
     assert restarts.left() and restarts.fields() == {"learner_restarts": 0, "steps_lost": 0}
     # A session from step 2 asked for 6 more (to 8), stopped after finishing step 7.
-    assert restarts.restart(tmp_path, 2, 7, 6, RuntimeError("learner died"), out) == 4
-    assert restarts.restart(tmp_path, 4, 5, None, RuntimeError("learner died"), out) is None
-    assert restarts.fields() == {"learner_restarts": 2, "steps_lost": 4}
+    assert restarts.restart("learner died (killed)", 4, (2, 7), 6, out) == 4
+    assert restarts.restart("learner died (killed)", 4, (4, 5), None, out) is None
+    # Before the first checkpoint: from step 0, every step done is lost.
+    assert restarts.restart("learner died (killed)", None, (0, 1), 3, out) == 3
+    assert restarts.fields() == {"learner_restarts": 3, "steps_lost": 5}
     assert not restarts.left()
-    assert "restart 1 of 2 (ray.learner_restarts) after learner died: the run continues from " \
-           "its checkpoint at step 4; 3 steps lost (3 in all)" in out.getvalue()
+    first, _, third = out.getvalue().splitlines()
+    assert first == ("ray: learner died (killed): restart 1 of 3 (ray.learner_restarts): the "
+                     "run continues from its checkpoint at step 4; 3 steps lost (3 in all)")
+    assert third == ("ray: learner died (killed): restart 3 of 3 (ray.learner_restarts): the "
+                     "run has no checkpoint yet: it starts again from step 0; 1 steps lost "
+                     "(5 in all)")
 
 
-def test_only_a_lost_learner_restarts_the_run(tmp_path):
-    """`ray.learner_restarts` answers a stop for the lost learner (or a group member, which
-    stops the group: its learner 0 dies) alone; a stop for another actor (Ray restarted it in
-    place until its budget was spent) ends the run. Sessions stood in for; the Ray run:
-    tests/test_ray_driver.py, -m slow."""
+def test_a_lost_learner_restarts_the_run_by_default_and_the_stop_says_what_resume_does(
+        tmp_path, monkeypatch):
+    """A stop for the lost learner (or a group member, which stops the group) starts the run
+    again, `ray.learner_restarts` times (2 by default); so does any actor lost while the
+    actors started (nothing restarted it); a stop for another actor mid-run (Ray restarted
+    it in place until its budget was spent) ends the run. The last stop names what died, that
+    the budget is spent, and what `--resume` will do. Sessions and the run folder's newest
+    intact checkpoint stood in for; the Ray runs: tests/test_ray_driver.py."""
     import io
     from types import SimpleNamespace
 
-    import jax
-    import jax.numpy as jnp
     from test_ued_train import ued_config
 
-    from ued.checkpoint import Checkpoints
-    from ued.run_folder import CHECKPOINT_DIR
+    from workers import ray_driver
     from workers.driver import RunStopped
     from workers.ray_driver import RayDriver
 
-    with Checkpoints(tmp_path / CHECKPOINT_DIR) as checkpoints:
-        checkpoints.save(2, {"w": jnp.zeros(2)}, jax.random.key(0))
-    config = ued_config("dr", **{"ray.enabled": "true", "ray.learner_restarts": 3})
+    config = ued_config("dr", **{"ray.enabled": "true"})
+    assert config.ray.learner_restarts == 2
+    monkeypatch.setattr(ray_driver, "resume_point", lambda run_dir, config: (2, 1))
+    monkeypatch.setattr(ray_driver, "what_resume_does", lambda run_dir, config: (
+        f"tabx train --resume {run_dir} continues it from its checkpoint at step 2"))
 
     class Stops(RayDriver):
-        def __init__(self, lost: list[str]):
+        def __init__(self, lost: list[tuple[str, bool]]):
             super().__init__()
             self.lost, self.sessions = lost, 0
 
         def session(self, config, run_dir, **_):
             self.sessions += 1
-            self.runner = SimpleNamespace(start=0, reached=3)
             if self.lost:
-                raise RunStopped(f"{self.lost[0]} died", lost=self.lost.pop(0))
+                name, started = self.lost.pop(0)
+                self.runner = SimpleNamespace(start=0, reached=3) if started else None
+                raise RunStopped(f"{name} died (killed)", lost=name)
             return run_dir
 
-    learner = Stops(["learner", "learner"])
+    # Twice the learner: restarted twice, and the run ends.
+    learner = Stops([("learner", True), ("learner", True)])
     assert learner.run(config, tmp_path, stream=io.StringIO()) == tmp_path
     assert learner.sessions == 3
-    explorer = Stops(["explorer-0"])
-    with pytest.raises(RunStopped, match="explorer-0 died"):
+    # An Explorer lost while the actors started: nothing restarted it, so the run starts again.
+    at_start = Stops([("explorer-0", False)])
+    assert at_start.run(config, tmp_path, stream=io.StringIO()) == tmp_path
+    assert at_start.sessions == 2
+    # An Explorer's stop mid-run ends it, with what --resume will do.
+    explorer = Stops([("explorer-0", True)])
+    with pytest.raises(RunStopped, match=f"^{tmp_path}: explorer-0 died \\(killed\\); tabx "
+                                         f"train --resume {tmp_path} continues it from its "
+                                         f"checkpoint at step 2$"):
         explorer.run(config, tmp_path, stream=io.StringIO())
     assert explorer.sessions == 1
+    # A third loss of the learner: the budget is spent, and the stop line says so.
+    out = io.StringIO()
+    spent = Stops([("learner", True)] * 3)
+    with pytest.raises(RunStopped, match="ray.learner_restarts \\(2\\) spent"):
+        spent.run(config, tmp_path, stream=out)
+    assert spent.sessions == 3
+    assert out.getvalue().splitlines()[-1] == (
+        f"ray: the run stops: learner died (killed); ray.learner_restarts (2) spent; tabx train "
+        f"--resume {tmp_path} continues it from its checkpoint at step 2")
 
 
 def test_members_on_one_machine_share_its_cores():

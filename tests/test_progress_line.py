@@ -65,3 +65,27 @@ def test_progress_line_shows_the_split_only_when_given():
                      "(new 2, replay 1)")
     assert "1,234 steps/s (trained 1,000 + explored 234)  ETA 1m00s" in second
     assert "1,234 steps/s  ETA" in third and "explored" not in third
+
+
+def test_a_line_off_a_terminal_splits_the_steps_since_the_previous_line(clock_at):
+    """Off a terminal a line is shown every `every_s` seconds: its rate and its split cover
+    every step since the previous line, not only the last logged one. Robust PLR's steps
+    alternate here: a new-level step (1 s, explored) and a replay step (3 s, trained); the line
+    after four of them lands on a replay step, which alone would read `explored 0`."""
+    from ued.progress import log_update
+
+    clock = clock_at.clock(start_update=0, steps_per_update=100)
+    out = io.StringIO()
+    bar = Progress(100, out, every_s=3600.0)  # the first and the final line only
+    trained = 0
+    for update, (seconds, trains) in enumerate([(5, False), (1, False), (3, True), (1, False),
+                                                (3, True)], start=1):
+        clock_at(clock_at.now + seconds)
+        trained += trains
+        timing, rate = clock.read(update, trained)
+        log_update(None, bar, None, update, None, timing, 100, rate, 100, update == 5,
+                   played=clock.played)
+    first, line = out.getvalue().splitlines()
+    assert "first update 5.0 s" in first
+    # Updates 2-5 in 8 s: 2 trained (200 env steps), 2 explored (200): 25 + 25 steps/s.
+    assert "50 steps/s (trained 25 + explored 25)" in line, line

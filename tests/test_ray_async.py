@@ -58,6 +58,30 @@ def test_asynchronous_mode_bounds_staleness_and_commits_every_batch_once(tmp_pat
     assert "explorers 1" in out.getvalue() and "trained" in out.getvalue()
 
 
+@pytest.mark.parametrize("explorers", [0, 2])
+def test_accel_runs_to_the_end_while_commits_evict_replayed_parents(tmp_path, explorers):
+    # A buffer of one batch (4 levels) that ACCEL fills again every few steps, Explorer
+    # results committed at the start of every step and in the drain before each checkpoint:
+    # between a replay step and its mutate step, inserts evict the replayed parents. The
+    # children are made from the replayed levels themselves, so every step runs, and every
+    # snapshot taken between the two steps keeps the parents.
+    config = ray_config("accel", **{"ray.explorers": explorers, "ray.max_inflight": 2,
+                                    "ray.max_policy_lag": 100, "ued.buffer_size": 4,
+                                    "ued.min_fill_ratio": 0.25, "ued.replay_prob": 0.6,
+                                    "run.checkpoint_every": 3,
+                                    "learner.total_timesteps": 30 * 64})
+    run_dir = train(config, run_dir=tmp_path / "accel", stream=io.StringIO(), max_updates=30)
+    record = json.loads((run_dir / RAY_RECORD).read_text())
+    assert record["mode"] == "asynchronous" and record["ledger"] == {"committed": 30}, record
+    assert record["branches"]["mutate"] >= 5
+    buffer = LevelBuffer.load(run_dir / LEVELS_DIR / "buffer-30.msgpack")
+    assert buffer.stats["insert_attempts"] >= 4 * 10  # the buffer was filled many times over
+    assert (buffer.column("source") == 1).any() or buffer.stats["rejected"] > 0
+    from workers.resume import check_run_folder
+
+    checks = check_run_folder(run_dir)
+    assert all(check.intact and check.note is None for check in checks), checks
+
 
 def test_an_explorer_killed_mid_batch_restarts_and_its_batches_are_reissued(tmp_path,
                                                                               monkeypatch):
@@ -172,6 +196,7 @@ def test_a_long_run_holds_no_more_object_refs_at_its_end_and_can_be_inspected_wh
     assert status.returncode == 0, status.stderr[-2000:]
     assert f"{run_dir}: running; asynchronous schedule; step 3 of 40" in status.stdout
     assert "explorer-0" in status.stdout and "learner" in status.stdout
+    assert "env steps/s over the last " in status.stdout and ", explored " in status.stdout
     # Over: the record says so, and the live buffer points to the snapshots.
     record = json.loads((run_dir / RAY_RECORD).read_text())
     assert record["status"] == "finished" and record["steps"] == [0, 40]

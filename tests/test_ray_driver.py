@@ -452,6 +452,69 @@ def test_two_learner_processes_train_as_one_learner_with_two_devices_and_resume_
     assert np.array_equal(key_a, key_b)
 
 
+def kill_learner_after(run_dir, steps: list[int]):
+    """A callback that kills the run's learner actor (Ray's kill, as its node's loss or the
+    memory monitor would) after each step of `steps` in turn, one per session: the learner
+    of the session running then (`ray.json` names it)."""
+    def kill(done, train_state, values):
+        if steps and done == steps[0]:
+            name = json.loads((run_dir / RAY_RECORD).read_text())["actors"]["learner"]
+            ray.kill(ray.get_actor(name, namespace=RAY_NAMESPACE))
+            steps.pop(0)
+
+    return kill
+
+
+def test_a_lost_learner_restarts_the_run_from_its_newest_checkpoint_by_default(
+        tmp_path, local_accel):
+    """The learner killed after step 1, before the first checkpoint (step 4): the run starts
+    again from step 0 and says so; killed again after step 5: it continues from the checkpoint
+    of step 4, 1 step lost. `ray.learner_restarts` is left at its default (2). Deterministic
+    ACCEL on 1 Explorer: the run still ends as the uninterrupted local one, bit for bit."""
+    run_dir, out = tmp_path / "restarted", io.StringIO()
+    kills = [1, 5]
+    train(ray_config("accel", **{"ray.deterministic": "true", "ray.explorers": 1,
+                                 **ACCEL_CONFIG}),
+          run_dir=run_dir, stream=out, max_updates=ACCEL_STEPS,
+          callback=kill_learner_after(run_dir, kills))
+    text = out.getvalue()
+    assert kills == [], text[-3000:]
+    assert ("restart 1 of 2 (ray.learner_restarts): the run has no checkpoint yet: it starts "
+            "again from step 0; 1 steps lost (1 in all)") in text, text[-3000:]
+    assert f"resume: {run_dir} has no checkpoint yet: the run starts again from step 0" in text
+    assert ("restart 2 of 2 (ray.learner_restarts): the run continues from its checkpoint at "
+            "step 4; 1 steps lost (2 in all)") in text
+    assert text.count("ray: learner died (") == 2  # each restart line names the learner
+    record = json.loads((run_dir / RAY_RECORD).read_text())
+    assert record["status"] == "finished" and record["steps"] == [4, ACCEL_STEPS]
+    assert record["learner_restarts"] == 2 and record["steps_lost"] == 2
+    state_a, key_a, _ = final_state(local_accel, ued_config("accel"))
+    state_b, key_b, step_b = final_state(run_dir, ued_config("accel"))
+    assert step_b == ACCEL_STEPS
+    assert trees_equal(state_a.params, state_b.params) and np.array_equal(key_a, key_b)
+
+
+def test_a_lost_learner_with_no_restart_left_stops_saying_what_resume_will_do(tmp_path):
+    """`ray.learner_restarts: 0`, the learner killed after step 1 of a run whose first
+    checkpoint would be step 4: the stop names the learner, the spent budget, and that a
+    resume starts from step 0 (there is no checkpoint); `ray.json` says stopped."""
+    from workers.driver import RunStopped
+
+    run_dir, out = tmp_path / "stopped", io.StringIO()
+    with pytest.raises(RunStopped) as stopped:
+        train(ray_config("robust_plr", **{"ray.learner_restarts": 0, "ray.explorers": 0,
+                                          "run.checkpoint_every": 4}),
+              run_dir=run_dir, stream=out, max_updates=3,
+              callback=kill_learner_after(run_dir, [1]))
+    message = str(stopped.value)
+    assert message.startswith(f"{run_dir}: learner died ("), message
+    assert message.endswith(f"; ray.learner_restarts (0) spent; no checkpoint yet: tabx train "
+                            f"--resume {run_dir} starts it again from step 0"), message
+    assert out.getvalue().splitlines()[-1] == "ray: the run stops: " + message.split(": ", 1)[1]
+    record = json.loads((run_dir / RAY_RECORD).read_text())
+    assert record["status"] == "stopped" and record["error"].startswith("learner died (")
+
+
 # With `-m slow`: test_learner_group.py's killed-member test covers the group's stop, and
 # test_a_learner_group_restart_counts_the_steps_since_the_checkpoint the restart's count.
 @pytest.mark.slow

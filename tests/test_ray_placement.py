@@ -130,3 +130,20 @@ def test_rates_are_averaged_over_a_stated_window():
         now[0] = float(t)
         (rate,) = window.add(15_000 + 500 * (t - 1))
     assert rate == pytest.approx(500.0) and window.span_s == pytest.approx(10.0, abs=1)
+
+
+def test_runs_status_says_which_steps_its_rates_count():
+    """`tabx runs status`: the trained and the explored env steps/s, each named (the
+    continuous schedule trains at every step while its Explorers explore many times more); a
+    record of an older driver (one rate, the loop's steps) is named for what it counts."""
+    from workers.ray_live import status_text
+
+    record = {"status": "finished", "mode": "continuous", "steps": [0, 40],
+              "trained_steps_per_s": 451.2, "explored_steps_per_s": 12_034.0,
+              "rate_window_s": 60.0, "buffer_size": 128}
+    lines = status_text("RUN", record).splitlines()
+    assert "env steps/s over the last 60 s: trained 451, explored 12,034; buffer: 128" in lines
+    older = {"status": "finished", "steps": [0, 4], "env_steps_per_s": 451.2,
+             "rate_window_s": 60.0, "buffer_size": 128}
+    assert ("env steps/s of the loop's steps, trained or explored over the last 60 s: 451; "
+            "buffer: 128") in status_text("RUN", older).splitlines()

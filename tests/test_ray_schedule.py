@@ -18,7 +18,7 @@ from test_ued_train import ued_config
 
 from level_buffer import Source
 from ued.curricula import Branch
-from workers.actor_manager import ActorDeaths
+from workers.actor_manager import ActorDeaths, ActorManager
 from workers.actors import ExplorerActor, LearnerActor, LevelServiceActor
 from workers.ray_async import AsyncRun
 from workers.ray_handles import ExplorerPool, RemoteLearner
@@ -64,10 +64,11 @@ class SlowRay:
 
 
 def run_schedule(schedule_class: type, config: Any, ray: SlowRay, steps: int,
-                 before_drain: Any = None):
+                 before_drain: Any = None, after_step: Any = None):
     """`steps` steps of `schedule_class` over in-process actors (one learner, the config's
     Explorers sharing its programs, the level service), then drained: (schedule, branches,
-    the level service). `before_drain(schedule)` runs between the steps and the drain."""
+    the level service). `after_step(schedule)` runs after each step, `before_drain(schedule)`
+    between the steps and the drain."""
     learner_actor = LearnerActor(config)
     explorer_actors = [ExplorerActor(config, learner_actor.learner)
                        for _ in range(config.ray.explorers)]
@@ -76,16 +77,23 @@ def run_schedule(schedule_class: type, config: Any, ray: SlowRay, steps: int,
     workers = Workers(Actor(LevelServiceActor(config)), Actor(learner_actor),
                       [Actor(a) for a in explorer_actors], None, 0.0)
     learner_actor.init(jax.random.key(0))
-    service = RemoteService(ray, workers.service, ActorDeaths(None))
-    run = UEDRun(config, service, ExplorerPool(ray, workers.scorers()), [])
-    schedule = schedule_class(ray, config, run, RemoteLearner(ray, workers.learner), workers,
+    manager = ActorManager(ray, ActorDeaths(None))
+    workers.register(manager)
+    service = RemoteService(ray, workers.service, manager)
+    run = UEDRun(config, service, ExplorerPool(ray, workers.scorers(), workers.scorer_names(),
+                                               manager), [])
+    schedule = schedule_class(ray, config, run, RemoteLearner(ray, workers.learner, manager),
+                              workers,
                               service=service)
     key = jax.random.key(config.seed)
     branches = []
     for step in range(steps):
         key, k_step = jax.random.split(key)
         branches.append(schedule.step(step, k_step)[0])
-        assert all(n <= config.ray.max_inflight for n in schedule.inflight)
+        assert all(schedule.inflight(i) <= config.ray.max_inflight
+                   for i in range(len(schedule.names)))
+        if after_step is not None:
+            after_step(schedule)
     if before_drain is not None:
         before_drain(schedule)
     schedule.drain()
@@ -132,6 +140,47 @@ def test_accel_children_are_asked_for_before_a_commit_can_evict_their_parents():
     assert service.buffer.stats["insert_attempts"] == 4 * schedule.stats.committed
 
 
+class LateRay(SlowRay):
+    """A result is ready at the second look that does not wait (or when the caller blocks):
+    an Explorer batch issued before an ACCEL replay step arrives at the start of the mutate
+    step after it, the order in which its insert can evict the replayed parents."""
+
+    def __init__(self):
+        self.looked: set[int] = set()
+
+    def wait(self, refs: list[Ref], num_returns: int = 1, timeout: float | None = None):
+        if timeout != 0:
+            return refs[:num_returns], refs[num_returns:]
+        ready = [r for r in refs if id(r) in self.looked][:num_returns]
+        self.looked.update(id(r) for r in refs)
+        return ready, [r for r in refs if r not in ready]
+
+
+def test_accel_mutates_its_replayed_levels_even_when_a_commit_evicted_them():
+    """Explorer results that arrive between ACCEL's replay step and its mutate step are
+    committed first; in a buffer of one batch their inserts evict replayed parents. The
+    mutate step edits the replayed levels themselves, so it never names a level the buffer
+    may no longer hold: every step runs, and the children carry their parents' ids."""
+    config = ued_config("accel", **{
+        "ray.enabled": "true", "ray.explorers": 1, "ray.max_inflight": 2,
+        "ray.max_policy_lag": 100, "ued.replay_prob": 0.5, "ued.buffer_size": 4,
+        "ued.min_fill_ratio": 0.25})
+    evicted_parents = []
+
+    def watch(schedule):
+        service = schedule.service.actor._obj
+        pending = schedule.run.curriculum.last_replay_ids
+        if pending and not set(pending) <= set(service.buffer.ids.tolist()):
+            evicted_parents.append(pending)
+
+    schedule, branches, service = run_schedule(AsyncRun, config, LateRay(), 40,
+                                               after_step=watch)
+    assert branches.count(Branch.MUTATE) >= 5
+    assert evicted_parents, "the stand-in never evicted a parent: the test proves nothing"
+    assert schedule.ledger == dict.fromkeys(range(len(branches)), "committed")
+    assert service.buffer.stats["insert_attempts"] == 4 * schedule.stats.committed
+
+
 def test_sfl_batches_go_to_every_explorer_before_any_result_is_awaited():
     log = []
 
@@ -148,7 +197,8 @@ def test_sfl_batches_go_to_every_explorer_before_any_result_is_awaited():
             log.append(("get",))
             return super().get(ref)
 
-    pool = ExplorerPool(Gets(), [Actor(Recording("a")), Actor(Recording("b"))], ["a", "b"])
+    pool = ExplorerPool(Gets(), [Actor(Recording("a")), Actor(Recording("b"))], ["a", "b"],
+                        ActorManager(Gets()))
     batches = [(level, jax.random.key(i)) for i, level in enumerate((1, 2, 3))]
     scores = pool.learnability_batches(None, batches, 8)
     assert [s[0] for s in scores] == [1.0, 2.0, 3.0]  # in batch order

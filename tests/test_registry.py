@@ -60,7 +60,7 @@ def test_runs_check_builds_no_learner(method, tmp_path, monkeypatch, capsys):
         assert code == 0 and "step 2: intact" in out, out
     else:  # the registry says Robust PLR keeps a buffer: its snapshot is missing
         assert code == 1 and "state-2.json: missing" in out, out
-        assert curriculum_entry(method).uses_buffer
+        assert curriculum_entry(method).load().uses_buffer
 
 
 @pytest.fixture
@@ -89,10 +89,11 @@ def test_a_registered_curriculum_is_found_by_name(toy, tmp_path):
     train(config, run_dir=tmp_path / "run", driver=driver, stream=io.StringIO())
     curriculum = driver.run_logic.curriculum
     assert isinstance(curriculum, toy.AlternatingReplay)
-    assert curriculum_entry("alternating_replay").uses_buffer
+    assert curriculum_entry("alternating_replay").load().uses_buffer
 
 
 def test_an_unregistered_method_is_a_config_error():
     with pytest.raises(ConfigError, match="ued.method: must be one of none, dr, plr, "
-                                          "robust_plr, accel, sfl, got 'alternating_rep'"):
+                                          "robust_plr, accel, sfl or an import path "
+                                          "module:Class, got 'alternating_rep'"):
         tiny_config(**{"ued.method": "alternating_rep"})

@@ -85,13 +85,16 @@ def test_a_bad_sweep_file_is_one_error_naming_file_and_field(tmp_path, text, mes
 
 
 def test_the_shipped_sweeps_read(tmp_path):
-    for name in ("paper_ued", "paper_marl", "smoke_ued", "smoke_marl"):
+    for name in ("paper_ued", "paper_marl", "paper_marl_cpu", "smoke_ued", "smoke_marl"):
         spec = read_sweep_spec(ROOT / "configs" / "sweeps" / f"{name}.yaml")
         assert spec.trials and spec.report_axes().seed_axis is not None, name
     paper = read_sweep_spec(ROOT / "configs" / "sweeps" / "paper_ued.yaml")
     # 5 methods x {unit, zone} x 4 scenarios, and the health/speed/damage ablations, x 5 seeds
     assert len(paper.trials) == 5 * (2 + 3) * 4 * 5
     assert {t.config.learner.total_timesteps for t in paper.trials} == {50_000_000}
+    marl = read_sweep_spec(ROOT / "configs" / "sweeps" / "paper_marl_cpu.yaml")
+    # MAPPO and IPPO x 4 challenges, 3 seeds in each trial's program
+    assert len(marl.trials) == 2 * 4 and {t.config.seeds for t in marl.trials} == {(0, 1, 2)}
 
 
 # --- running a sweep ---------------------------------------------------------------------------
@@ -137,8 +140,9 @@ points:
     assert {p.name for p in report.iterdir()} >= {"report.md", "results.csv", "trials.csv",
                                                   "curves-all.png"}
     rows = (report / "results.csv").read_text().splitlines()
-    assert rows[0].startswith("run.log_every,env.scenario,suite,seeds,mean") and len(rows) == 3
-    assert all(",train,2," in row for row in rows[1:])
+    assert rows[0].startswith("run.log_every,env.scenario,table,suite,opponent,seeds,mean")
+    # one cell per run.log_every (the training win rate over 2 seeds) and its `mean` row
+    assert len(rows) == 5 and all(",train,,,2," in row for row in rows[1:])
 
 
 def _records(folder: Path) -> dict[str, dict]:

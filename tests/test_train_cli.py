@@ -258,3 +258,55 @@ def test_the_summary_says_when_no_episode_ended(tmp_path):
     writer.scalars({"episode/count": 8.0, "episode/win_rate": 0.25}, step=192)
     writer.close()
     assert "win rate (training, at env step 192): 0.250 over 8 episodes" in run_summary_lines(run)
+
+
+def test_a_ray_run_resumed_without_ray_continues_on_the_local_driver(capsys, tmp_path):
+    """`tabx train --resume RUN` of a run trained with `--ray`: the local driver continues it
+    (Ray is not started, no `ray.json` is written), as `ray.enabled=false` says too; the run's
+    own config.yaml keeps its `ray:` section. The run folder is made by the local driver from
+    a config with `ray.enabled: true`: the same files a Ray run leaves."""
+    import io
+
+    from test_ued_train import ued_config
+
+    from ued.run_folder import read_run_config
+    from workers.local import LocalDriver
+    from workers.ray_driver import RAY_RECORD
+    from workers.train import train
+
+    config = ued_config("robust_plr", **{"ray.enabled": "true", "run.checkpoint_every": 1})
+    run = train(config, run_dir=tmp_path / "run", driver=LocalDriver(), stream=io.StringIO(),
+                max_updates=1)
+    assert read_run_config(run).ray.enabled
+    code, _, err = run_cli(capsys, "train", "--resume", str(run), "--max-updates", "1")
+    assert code == 0, err[-2000:]
+    assert "resuming robust_plr" in err and " on Ray " not in err
+    code, _, err = run_cli(capsys, "train", "--resume", str(run), "--max-updates", "1",
+                           "ray.enabled=false")
+    assert code == 0, err[-2000:]
+    assert not (run / RAY_RECORD).exists()
+    code, _, err = run_cli(capsys, "train", "--resume", str(run), "--ray", "ray.enabled=false")
+    assert code == 2 and "ray.enabled=false: --ray resumes the run on Ray" in err
+    with Checkpoints(run / CHECKPOINT_DIR) as checkpoints:
+        assert checkpoints.latest() == 3
+    assert read_run_config(run).ray.enabled  # config.yaml is the run's own
+
+
+def test_an_error_raised_in_a_ray_actor_is_shown_by_its_cause():
+    # An Explorer's call whose argument was a level-service call that raised: Ray wraps the
+    # service's error in the Explorer's, each text a coloured traceback.
+    from ray.exceptions import RayTaskError
+
+    from tabx_ued.cli import error_line
+
+    try:
+        raise KeyError("level ids [11] are not in the buffer")
+    except KeyError as cause:
+        inner = RayTaskError("mutate", "\x1b[36mray::LevelServiceActor.mutate()\x1b[39m "
+                             "(pid=7, ip=127.0.0.1)\nTraceback (most recent call last): ...",
+                             cause).as_instanceof_cause()
+    outer = RayTaskError("score_levels", "\x1b[36mray::ExplorerActor.score_levels()\x1b[39m "
+                         "(pid=8)\nTraceback ...", inner).as_instanceof_cause()
+    assert error_line(outer) == ("KeyError: 'level ids [11] are not in the buffer' (raised in "
+                                 "the Ray actor call LevelServiceActor.mutate())")
+    assert error_line(ValueError("bad\nsecond line")) == "ValueError: bad"

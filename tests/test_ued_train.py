@@ -18,7 +18,7 @@ from test_learners_helpers import tiny_config
 from level_buffer import LevelBuffer
 from tabx.compile_counter import CompileCounter
 from ued.config import ConfigError, config_from_dict
-from ued.curricula import ACCEL, PLR, SFL, Branch, DomainRandomization
+from ued.curricula import ACCEL, PLR, SFL, Branch, DomainRandomization, RobustPLR
 from ued.run_folder import LEVELS_DIR
 from workers.learner import LearnerWorker
 from workers.level_service import snapshot_steps
@@ -62,12 +62,12 @@ def test_plr_branches_follow_the_replay_decision():
 
 
 def test_which_branches_learn():
-    plr, robust, accel, dr = PLR(), PLR(robust=True), ACCEL(), DomainRandomization()
+    plr, robust, accel, dr = PLR(), RobustPLR(), ACCEL(), DomainRandomization()
     assert plr.learns(Branch.NEW) and plr.learns(Branch.REPLAY)
     assert not robust.learns(Branch.NEW) and robust.learns(Branch.REPLAY)
     assert not accel.learns(Branch.NEW) and not accel.learns(Branch.MUTATE)
     assert accel.learns(Branch.REPLAY) and dr.learns(Branch.NEW)
-    assert PLR(robust=True, exploratory_grad_updates=True).learns(Branch.NEW)
+    assert RobustPLR(exploratory_grad_updates=True).learns(Branch.NEW)
     from ued.config import UEDSection
     from ued.registry import curriculum_for
 
@@ -194,6 +194,95 @@ def test_resume_continues_exactly(tmp_path):
     buf_b = LevelBuffer.load(part / LEVELS_DIR / "buffer-8.msgpack")
     assert np.array_equal(buf_a.ids, buf_b.ids)
     assert np.array_equal(buf_a.scores, buf_b.scores)
+
+
+# ACCEL that replays whenever its buffer allows: NEW, REPLAY, MUTATE, REPLAY, MUTATE, ...; so
+# the checkpoint after 2 steps is taken between a replay step and its mutate step.
+ACCEL_REPLAYS = {"ued.replay_prob": 1.0, "run.checkpoint_every": 2}
+
+
+def test_a_checkpoint_between_replay_and_mutate_keeps_the_parents_and_resumes_exactly(
+        tmp_path):
+    config = ued_config("accel", **ACCEL_REPLAYS)
+    full = train(config, run_dir=tmp_path / "full", stream=io.StringIO(), max_updates=4)
+    part = train(config, run_dir=tmp_path / "part", stream=io.StringIO(), max_updates=2)
+    state = json.loads((part / LEVELS_DIR / "state-2.json").read_text())["curriculum"]
+    assert state["last_branch"] == Branch.REPLAY and state["last_replay_ids"]
+    parents = LevelBuffer.load(part / LEVELS_DIR / "parents-2.msgpack")
+    assert len(parents) == len(state["last_replay_ids"])
+    buffer = LevelBuffer.load(part / LEVELS_DIR / "buffer-2.msgpack")
+    assert np.array_equal(parents.leaf("units.max_health"),
+                          buffer.get(np.asarray(state["last_replay_ids"]))["units.max_health"])
+    stream = io.StringIO()
+    train(run_dir=part, resume=True, stream=stream, max_updates=2)
+    assert "dropped" not in stream.getvalue()
+    for name in ("state-4.json", "buffer-4.msgpack"):
+        assert (full / LEVELS_DIR / name).read_bytes() == (part / LEVELS_DIR / name
+                                                            ).read_bytes(), name
+
+
+def test_a_snapshot_whose_buffer_lost_the_parents_resumes_without_that_mutate_step(
+        tmp_path, monkeypatch, capsys):
+    """A snapshot written between an ACCEL replay step and its mutate step by a version that
+    kept no parents file, after inserts had evicted a parent (the asynchronous schedule
+    commits Explorer results in between): `tabx runs check` says a resume drops the mutate
+    step, and the resume does so and says it, instead of failing at the next step."""
+    from tabx_ued.cli import main
+    from workers.level_service import LevelService
+
+    config = ued_config("accel", **ACCEL_REPLAYS)
+    save = LevelService.save
+
+    def save_as_before(service, folder, step, state, keep=None, parents=None):
+        state = json.loads(json.dumps(state))
+        if parents is not None:  # as if inserts had evicted them: ids the buffer lacks
+            gone = int(service.buffer.ids.max()) + 1
+            state["curriculum"]["last_replay_ids"] = [gone, gone + 1]
+        save(service, folder, step, state, keep)
+
+    monkeypatch.setattr(LevelService, "save", save_as_before)
+    run_dir = train(config, run_dir=tmp_path / "run", stream=io.StringIO(), max_updates=2)
+    monkeypatch.setattr(LevelService, "save", save)
+    ids = json.loads((run_dir / LEVELS_DIR / "state-2.json").read_text())["curriculum"][
+        "last_replay_ids"]
+    held = LevelBuffer.load(run_dir / LEVELS_DIR / "buffer-2.msgpack").ids.tolist()
+    assert ids and not set(ids) & set(held)
+    assert not (run_dir / LEVELS_DIR / "parents-2.msgpack").exists()
+
+    capsys.readouterr()
+    assert main(["runs", "check", str(run_dir)]) == 0
+    assert "step 2: intact (its buffer no longer holds the replayed levels" in (
+        capsys.readouterr().out)
+    stream = io.StringIO()
+    train(run_dir=run_dir, resume=True, stream=stream, max_updates=3)
+    text = stream.getvalue()
+    assert "resume: the level snapshot of step 2 names replayed levels" in text
+    assert "mutation step after that replay is dropped" in text
+    assert snapshot_steps(run_dir / LEVELS_DIR)[-1] == 5  # the run went on
+
+
+def test_runs_check_names_a_snapshot_that_resumes_without_its_mutate_step(tmp_path, capsys,
+                                                                           monkeypatch):
+    from tabx_ued.cli import main
+    from workers.level_service import LevelService
+
+    config = ued_config("accel", **ACCEL_REPLAYS)
+    save = LevelService.save
+    monkeypatch.setattr(LevelService, "save", lambda service, folder, step, state, keep=None,
+                        parents=None: save(service, folder, step, state, keep))
+    run_dir = train(config, run_dir=tmp_path / "run", stream=io.StringIO(), max_updates=2)
+    capsys.readouterr()
+    assert main(["runs", "check", str(run_dir)]) == 0
+    # The parents are still in the buffer here: nothing is lost.
+    assert "step 2: intact\n" in capsys.readouterr().out
+    state = json.loads((run_dir / LEVELS_DIR / "state-2.json").read_text())
+    buffer = LevelBuffer.load(run_dir / LEVELS_DIR / "buffer-2.msgpack")
+    from workers.resume import parents_check
+
+    state["curriculum"]["last_replay_ids"] = [int(buffer.ids.max()) + 1]
+    (run_dir / LEVELS_DIR / "state-2.json").write_text(json.dumps(state))
+    problem, note = parents_check(run_dir / LEVELS_DIR, 2, config)
+    assert problem is None and "a resume drops that mutate step" in note
 
 
 def test_resume_without_level_snapshot_is_a_clear_error(tmp_path):

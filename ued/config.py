@@ -38,11 +38,19 @@ from typing import Any
 
 import yaml
 
+from level_buffer.prioritization import PRIORITIZATIONS
 from ued.config_files import resolve_config
 from ued.errors import ConfigError
 from ued.errors import check as _check
 from ued.levels import LevelSpace
-from ued.registry import CURRICULA, LEARNERS, learner_entry, learners_where
+from ued.registry import (
+    CURRICULA,
+    LEARNERS,
+    curriculum_class,
+    is_import_path,
+    learner_entry,
+    learners_where,
+)
 from ued.yaml_reader import read_yaml
 
 # `learner` fields only the PPO learners read (`LearnerEntry.ppo_settings`): another learner's
@@ -283,7 +291,7 @@ class UEDSection:
     replay_prob: float = 0.8
     staleness_coef: float = 0.3
     min_fill_ratio: float = 0.5
-    prioritization: str = "rank"  # rank | topk
+    prioritization: str = "rank"  # rank | topk | uniform (level_buffer.prioritization)
     temperature: float = 0.3
     topk: int = 4  # levels in the softmax of top-k prioritisation
     duplicate_check: bool = True
@@ -304,12 +312,15 @@ class UEDSection:
 
     def validate(self, prefix: str = "ued") -> None:
         methods = ("none", *CURRICULA)
-        _check(self.method in methods, f"{prefix}.method",
-               f"must be one of {', '.join(methods)}, got {self.method!r}")
+        _check(self.method in methods or is_import_path(self.method), f"{prefix}.method",
+               f"must be one of {', '.join(methods)} or an import path module:Class, got "
+               f"{self.method!r}")
+        if is_import_path(self.method):
+            curriculum_class(self.method, f"{prefix}.method")  # imports it: a clear error
         _check(self.score in UED_SCORES, f"{prefix}.score",
                f"must be one of {', '.join(UED_SCORES)}, got {self.score!r}")
-        _check(self.prioritization in ("rank", "topk"), f"{prefix}.prioritization",
-               f"must be rank or topk, got {self.prioritization!r}")
+        _check(self.prioritization in PRIORITIZATIONS, f"{prefix}.prioritization",
+               f"must be one of {', '.join(PRIORITIZATIONS)}, got {self.prioritization!r}")
         for name in ("buffer_size", "topk", "sfl_batch_size", "sfl_num_batches",
                      "sfl_rollout_steps", "sfl_top_k", "sfl_update_freq", "eval_every"):
             value = getattr(self, name)
@@ -350,7 +361,9 @@ class RaySection:
     schedule: str = "sequential"
     learner_gpus: float = -1.0  # GPUs of the learner actor; -1: one if the cluster has any
     learners: int = 1  # learner actors that run each update together (a JAX process group)
-    learner_restarts: int = 0  # times a run stopped by its lost learner resumes itself
+    # times a run stopped by its lost learner (or any actor lost at start-up) starts again
+    # from its newest intact checkpoint (0: it stops, with the --resume command)
+    learner_restarts: int = 2
     learner_share_cores: bool = False  # group members on one node pin to their share of it
     num_cpus: int = 0  # CPUs of a Ray started here (0: Ray's own count)
     object_store_mb: int = 512  # object store of a Ray started here
@@ -726,7 +739,7 @@ def check_levels_admitted(config: TrainConfig) -> None:
     first, so the buffer may stay empty for ever: Robust PLR, which trains on buffer levels
     alone, then trains nothing, and PLR and ACCEL are domain randomisation in effect. (Checked
     for new runs, not in `validate`: a run folder of such a config still reads.)"""
-    if not config.ued.enabled or not CURRICULA[config.ued.method].uses_buffer:
+    if not config.ued.enabled or not curriculum_class(config.ued.method).uses_buffer:
         return
     _check(config.learner.num_steps >= config.env.max_steps, "learner.num_steps",
            f"{config.learner.num_steps} steps per rollout, below env.max_steps "

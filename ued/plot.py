@@ -106,6 +106,24 @@ def curve(seeds: list[Scalars], tag: str) -> Curve | None:
     return Curve(steps, mean, stderr, count)
 
 
+def draw_curve(ax: Any, line: Curve, label: str) -> Any:
+    """Draw `line` on matplotlib axes `ax`: the mean over seeds, with markers where it has few
+    points (a one-point series is its marker alone: a line through one point draws nothing),
+    in a band of one standard error where several seeds logged it (an error bar for a single
+    point). Returns the line's artist."""
+    few = len(line.steps) < 30
+    (artist,) = ax.plot(line.steps, line.mean, label=label, marker="o" if few else None,
+                        markersize=6 if len(line.steps) == 1 else 3)
+    if np.any(line.seeds > 1):
+        if len(line.steps) == 1:
+            ax.errorbar(line.steps, line.mean, yerr=line.stderr, color=artist.get_color(),
+                        capsize=4, linestyle="none")
+        else:
+            ax.fill_between(line.steps, line.mean - line.stderr, line.mean + line.stderr,
+                            color=artist.get_color(), alpha=0.25, linewidth=0)
+    return artist
+
+
 def plot_runs(runs: dict[str, list[Scalars]], patterns: list[str], out: str
               ) -> dict[str, dict[str, Curve]]:
     """Draw one panel per matched tag, one line per run (a band of one standard error for a
@@ -136,11 +154,7 @@ def plot_runs(runs: dict[str, list[Scalars]], patterns: list[str], out: str
                 continue
             drawn[tag][name] = line
             label = name if len(seeds) == 1 else f"{name} ({len(seeds)} seeds, mean \u00b1 s.e.)"
-            (artist,) = ax.plot(line.steps, line.mean, label=label,
-                                marker="." if len(line.steps) < 30 else None)
-            if len(seeds) > 1:
-                ax.fill_between(line.steps, line.mean - line.stderr, line.mean + line.stderr,
-                                color=artist.get_color(), alpha=0.25, linewidth=0)
+            draw_curve(ax, line, label)
         ax.set_title(tag, fontsize=10)
         ax.set_xlabel("env steps")
         ax.grid(alpha=0.3)
@@ -167,5 +181,5 @@ def save_figure(fig: Any, out: str | Path, dpi: int = 120, **savefig: Any) -> Pa
     return atomic_write_bytes(out, buffer.getvalue())
 
 
-__all__ = ["DEFAULT_TAGS", "Curve", "curve", "load_runs", "matching",
+__all__ = ["DEFAULT_TAGS", "Curve", "curve", "draw_curve", "load_runs", "matching",
            "plot_runs", "save_figure", "seed_folders"]

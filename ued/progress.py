@@ -10,6 +10,7 @@ import math
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, TextIO
 
 from tabx.compile_counter import compile_seconds
@@ -28,17 +29,27 @@ class Progress:
         self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
         self.every_s = every_s
         self._last = -math.inf
+        self._shown: Played | None = None  # the env steps played when the last line was shown
 
     def show(self, update: int, steps: int, steps_per_s: float, eta_s: float,
              win_rate: float, final: bool = False, first_update_s: float | None = None,
              extra: str = "", trained_per_s: float | None = None,
-             explored_per_s: float | None = None) -> None:
+             explored_per_s: float | None = None, played: Played | None = None) -> None:
         """`trained_per_s` and `explored_per_s` (UED: env steps that trained the policy, and
-        those played only to score levels) split `steps_per_s`, their sum, on the line."""
+        those played only to score levels) split `steps_per_s`, their sum, on the line.
+        `played` (`ThroughputClock.played`): the line's rate and its split then cover the env
+        steps played since the previous line shown, whatever number of logged steps that
+        spans (a line every `every_s` seconds off a terminal would otherwise show one step's
+        rate: a replay step's, all trained, or a new-level step's, all explored)."""
         now = time.monotonic()
         if not (self.tty or final or now - self._last >= self.every_s):
             return
         self._last = now
+        if played is not None:
+            since, self._shown = self._shown, played
+            if since is not None and played.seconds > since.seconds and first_update_s is None:
+                trained_per_s, explored_per_s = played.rates_since(since)
+                steps_per_s = trained_per_s + (explored_per_s or 0.0)
         win = "-" if not math.isfinite(win_rate) else f"{win_rate:.2f}"
         if first_update_s is not None:
             rate = f"first update {first_update_s:.1f} s (compilation included)"
@@ -57,6 +68,23 @@ class Progress:
         self.stream.flush()
 
 
+@dataclass(frozen=True)
+class Played:
+    """Env steps played by a training loop so far (from any fixed origin), at a clock's read:
+    `trained` trained the policy, `explored` only scored levels (None: every step trains)."""
+
+    seconds: float
+    trained: float
+    explored: float | None
+
+    def rates_since(self, before: Played) -> tuple[float, float | None]:
+        """(trained, explored) env steps/s between `before` and this."""
+        span = self.seconds - before.seconds
+        explored = (None if self.explored is None or before.explored is None
+                    else (self.explored - before.explored) / span)
+        return (self.trained - before.trained) / span, explored
+
+
 class ThroughputClock:
     """Wall-clock bookkeeping of a training loop: the first update's seconds (compilation
     included), then env steps/s between reads. Read it only after the device has finished the
@@ -68,7 +96,8 @@ class ThroughputClock:
     `time/explored_steps_per_s`; `time/steps_per_s` stays their sum. Without `trained` every
     step trained. Env steps played beside the loop's steps (`background`: the Ray driver's
     continuous schedule, whose Explorers score levels while the learner trains) count as
-    explored, and in the sum; the ETA counts the loop's steps only.
+    explored, and in the sum; the ETA counts the loop's steps only. `played` holds the running
+    totals of the newest read, for a rate over any window (`Progress.show`).
 
     `eta_steps_per_s` is the rate an ETA should use: env steps per second over the intervals
     between reads (after the first) in which nothing compiled. A run compiles more than its
@@ -102,6 +131,7 @@ class ThroughputClock:
         self._compiled_at = 0.0  # the compile-time total at the previous read
         self._clean = [0, 0.0]  # updates and seconds of the compile-free intervals
         self._intervals = 0  # intervals since the first read
+        self.played: Played | None = None
 
     @property
     def first_pending(self) -> bool:
@@ -143,6 +173,10 @@ class ThroughputClock:
                     self.eta_steps_per_s = (done - u0) * self.steps_per_update / running
         self._t, self._update, self._trained = now, done, trained
         self._compiled_at = compiling
+        loop = done * self.steps_per_update
+        self.played = (Played(now, loop, None) if trained is None else
+                       Played(now, trained * self.steps_per_update,
+                              loop - trained * self.steps_per_update + background))
         return out, rate
 
 
@@ -167,9 +201,10 @@ def logged_scalars(metrics: dict[str, Any], steps_per_s: float) -> dict[str, flo
 def log_update(writer: SummaryWriter | None, bar: Progress | None, callback, done: int,
                train_state: TrainState, metrics: dict[str, Any], steps_per_update: int,
                steps_per_s: float, num_updates: int, last: bool, extra: str = "",
-               eta_steps_per_s: float | None = None) -> None:
+               eta_steps_per_s: float | None = None, played: Played | None = None) -> None:
     """One logged update: TensorBoard scalars, the progress line (its ETA from
-    `eta_steps_per_s` where given: `ThroughputClock.eta_steps_per_s`), the callback. No
+    `eta_steps_per_s` where given: `ThroughputClock.eta_steps_per_s`; its rate over the steps
+    since the previous line with `played`: `ThroughputClock.played`), the callback. No
     `writer`: the caller writes the scalars (a multi-seed run: one writer per seed)."""
     values = logged_scalars(metrics, steps_per_s)
     steps = done * steps_per_update
@@ -182,9 +217,10 @@ def log_update(writer: SummaryWriter | None, bar: Progress | None, callback, don
         bar.show(done, steps, rate, eta, values.get("episode/win_rate", math.nan), final=last,
                  first_update_s=values.get("time/first_update_s"), extra=extra,
                  trained_per_s=values.get("time/trained_steps_per_s"),
-                 explored_per_s=values.get("time/explored_steps_per_s"))
+                 explored_per_s=values.get("time/explored_steps_per_s"), played=played)
     if callback is not None:
         callback(done, train_state, values)
 
 
-__all__ = ["Progress", "ThroughputClock", "format_duration", "log_update", "logged_scalars"]
+__all__ = ["Played", "Progress", "ThroughputClock", "format_duration", "log_update",
+           "logged_scalars"]

@@ -1,12 +1,12 @@
 """The registry of UED curricula and learners: what each method needs, by name, without
 building it.
 
-An entry says what its method needs: a curriculum whether it keeps a level buffer, which
-level scores it computes and whether it has steps for Explorers; a learner which config
-sections it reads and what it supports (a value head, several seeds in one program, the UED
-curricula, several devices). Config validation, `tabx runs check` and the drivers read the
-entries; only `CurriculumEntry.build` and `LearnerEntry.load` import the method's module, so
-reading the registry compiles and allocates nothing.
+A curriculum's entry is its name and class: the class says what it needs (a level buffer, its
+branches, its scores; `ued.curricula.base`), and any other `Curriculum` subclass is used by
+import path (`ued.method: my_module:MyCurriculum`, `curriculum_class`). A learner's entry says
+which config sections it reads and what it supports (a value head, several seeds in one
+program, the UED curricula, several devices). Config validation, `tabx runs check` and the
+drivers read them; importing a class compiles and allocates nothing.
 
 A method is registered once, here (the built-in ones) or by its own module (`register_curriculum`,
 `register_learner`; tests/example_curriculum.py is a worked example). `build`/`cls` name the
@@ -16,9 +16,13 @@ method's class as "package.module:Class" (imported when first used) or are the c
 from __future__ import annotations
 
 import importlib
+import os
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
+
+from ued.errors import ConfigError
 
 
 def _resolve(ref: str | Callable[..., Any]) -> Any:
@@ -34,21 +38,20 @@ def _resolve(ref: str | Callable[..., Any]) -> Any:
 
 @dataclass(frozen=True)
 class CurriculumEntry:
-    """A UED method (`ued.method`): what it needs, and its class (a `ued.curricula.Curriculum`
-    whose `from_config(ued_section)` builds it)."""
+    """A UED method (`ued.method`) by name: its class (a `ued.curricula.Curriculum`, which
+    says what it needs: a buffer, its branches, its scores), as "package.module:Class" or the
+    class itself."""
 
     name: str
     cls: str | Callable[..., Any]
-    uses_buffer: bool  # keeps a level buffer (snapshotted with each checkpoint)
-    # The level scores it computes (`ued.scores`): "ued.score" is the config's choice of regret
-    # estimate (max_mc or pvl), by which buffer levels are ranked.
-    scores: tuple[str, ...]
-    explorers: bool  # has steps that only score levels, which Explorers can take
-    section: str = "ued"  # the config section of its settings
+
+    def load(self) -> type:
+        """The curriculum class (imports its module)."""
+        return _resolve(self.cls)
 
     def build(self, section: Any) -> Any:
         """The curriculum, configured by `section` (the config's UEDSection)."""
-        return _resolve(self.cls).from_config(section)
+        return self.load().from_config(section)
 
 
 CURRICULA: dict[str, CurriculumEntry] = {}
@@ -60,31 +63,65 @@ def register_curriculum(entry: CurriculumEntry) -> CurriculumEntry:
     return entry
 
 
+def is_import_path(ref: str) -> bool:
+    """Whether a method or algorithm name is an import path, "module:Class"."""
+    module, colon, attribute = ref.partition(":")
+    return bool(colon and module and attribute)
+
+
+def import_path(ref: str, key: str) -> Any:
+    """The object "module:Attribute" names, imported as `python -m` would from the current
+    directory (which Ray's actors and Tune's trials then import from too). ConfigError
+    naming `key` when it cannot be imported."""
+    module, _, attribute = ref.partition(":")
+    if "" not in sys.path and os.getcwd() not in sys.path:
+        sys.path.insert(0, os.getcwd())
+    try:
+        found = importlib.import_module(module)
+    except Exception as err:  # noqa: BLE001 - the user's module: any error is theirs to fix
+        raise ConfigError(f"{key}: cannot import {module!r} for {ref!r} "
+                          f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
+                          f"); run from its folder or put it on PYTHONPATH") from None
+    try:
+        return getattr(found, attribute)
+    except AttributeError:
+        raise ConfigError(f"{key}: module {module!r} has no {attribute!r} (for {ref!r})"
+                          ) from None
+
+
+def curriculum_class(method: str, key: str = "ued.method") -> type:
+    """The class of `method`: a registered name or an import path "module:Class" (which must
+    name a `ued.curricula.Curriculum` subclass). ValueError naming the registered ones for an
+    unknown name; ConfigError naming `key` for a path that does not lead to a curriculum."""
+    if is_import_path(method):
+        from ued.curricula import Curriculum
+
+        cls = import_path(method, key)
+        if not (isinstance(cls, type) and issubclass(cls, Curriculum)):
+            raise ConfigError(f"{key}: {method!r} is not a ued.curricula.Curriculum subclass")
+        return cls
+    return curriculum_entry(method).load()
+
+
 def curriculum_entry(method: str) -> CurriculumEntry:
     """The registry entry of `method`; ValueError naming the registered ones if none."""
     try:
         return CURRICULA[method]
     except KeyError:
         raise ValueError(f"unknown UED method {method!r}; expected one of "
-                         f"{', '.join(CURRICULA)}") from None
+                         f"{', '.join(CURRICULA)} or an import path module:Class") from None
 
 
 def curriculum_for(section: Any) -> Any:
-    """The curriculum of a UEDSection (`section.method` looked up here)."""
-    return curriculum_entry(section.method).build(section)
+    """The curriculum of a UEDSection (`section.method`: a name or an import path)."""
+    return curriculum_class(section.method).from_config(section)
 
 
-for _entry in (
-        CurriculumEntry("dr", "ued.curricula:DomainRandomization", uses_buffer=False,
-                        scores=(), explorers=False),
-        CurriculumEntry("plr", "ued.curricula:PLR", uses_buffer=True, scores=("ued.score",),
-                        explorers=False),
-        CurriculumEntry("robust_plr", "ued.curricula:RobustPLR", uses_buffer=True,
-                        scores=("ued.score",), explorers=True),
-        CurriculumEntry("accel", "ued.curricula:ACCEL", uses_buffer=True,
-                        scores=("ued.score",), explorers=True),
-        CurriculumEntry("sfl", "ued.curricula:SFL", uses_buffer=False,
-                        scores=("learnability",), explorers=True)):
+for _entry in (CurriculumEntry("dr", "ued.curricula.dr:DomainRandomization"),
+               CurriculumEntry("plr", "ued.curricula.plr:PLR"),
+               CurriculumEntry("robust_plr", "ued.curricula.robust_plr:RobustPLR"),
+               CurriculumEntry("accel", "ued.curricula.accel:ACCEL"),
+               CurriculumEntry("sfl", "ued.curricula.sfl:SFL")):
     register_curriculum(_entry)
 
 
@@ -162,6 +199,6 @@ for _entry in (
 del _entry
 
 
-__all__ = ["CURRICULA", "LEARNERS", "CurriculumEntry", "LearnerEntry", "curriculum_entry",
-           "curriculum_for", "learner_entry", "learners_where", "register_curriculum",
-           "register_learner"]
+__all__ = ["CURRICULA", "LEARNERS", "CurriculumEntry", "LearnerEntry", "curriculum_class",
+           "curriculum_entry", "curriculum_for", "import_path", "is_import_path",
+           "learner_entry", "learners_where", "register_curriculum", "register_learner"]

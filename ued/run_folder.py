@@ -52,7 +52,7 @@ SET_ASIDE_DIR = "set-aside"  # files a resume or a restart moved away, kept for 
 SEED_DIR_PREFIX = "seed-"  # RUN_DIR/seed-<s>/: seed s of a multi-seed run
 # The level snapshot of a step, in LEVELS_DIR; each checkpoint records their digests.
 SNAPSHOT_FILES = ("buffer-{}.msgpack", "learnable-{}.msgpack", "sfl-window-{}.msgpack",
-                  "state-{}.json")
+                  "parents-{}.msgpack", "state-{}.json")
 
 
 def seed_dir(run_dir: str | Path, seed: int) -> Path:

@@ -46,6 +46,10 @@ TEAMS = ("ally", "enemy")
 SUITE_KEYS = ("name", "description", "episodes", "opponent", "team", "scenarios", "opponents",
               "entries")
 ENTRY_KEYS = ("scenario", "opponent")
+# The shipped heuristic-tier suites (`tiers-<teams>`: a training configuration against every
+# tier) are named with this prefix; a sweep report reads them as the tier table, not as
+# held-out suites.
+TIER_SUITE_PREFIX = "tiers-"
 
 
 @dataclass(frozen=True)
@@ -251,5 +255,6 @@ def suite_from_dict(data: Any, default_name: str = "suite", source: str = "") ->
                      opponent=opponent, team=team, description=description, source=source)
 
 
-__all__ = ["DEFAULT_EPISODES", "DEFAULT_OPPONENT", "EvalSuite", "SuiteEntry", "list_suites",
-           "load_suite", "normalise_opponent", "parse_suite", "suite_dir", "suite_from_dict"]
+__all__ = ["DEFAULT_EPISODES", "DEFAULT_OPPONENT", "TIER_SUITE_PREFIX", "EvalSuite", "SuiteEntry",
+           "list_suites", "load_suite", "normalise_opponent", "parse_suite", "suite_dir",
+           "suite_from_dict"]

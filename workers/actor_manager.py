@@ -6,7 +6,13 @@ lets Ray retry (`max_task_retries=0`). Every call goes through one `ActorManager
 knows which actor each call went to and which incarnation of that actor it reached, waits for a
 restart once per death (however many calls the death took), and sends a lost call again with
 arguments its caller rebuilds then (`Call.args`: the current policy, levels asked for again).
-It plays the part RLlib's FaultTolerantActorManager plays for RLlib's env runners.
+It plays the part RLlib's FaultTolerantActorManager plays for RLlib's env runners, and like it
+keeps the calls in flight: a schedule `submit`s a call with a tag of its own (a batch, an
+evaluation), asks how many are in flight to an actor (`in_flight`), and takes the finished ones
+with `fetch_ready` as values or, for an optional call given up, errors (`Result`). A call lost on
+the way is recovered and sent again inside `fetch_ready` (with the arguments its `args` give
+then, after its `before_send` hook); the schedules keep no in-flight bookkeeping of their own and
+write no retry of their own.
 
 A call is lost when `ray.get` raises one of these (`is_lost`):
 
@@ -123,6 +129,10 @@ class Call:
     ref: Any = None  # of the newest sending
     incarnation: int = 0  # of its actor at the newest sending
     failures: int = 0  # sendings lost in a row
+    # Runs just before every sending (the caller's record of what it sends: a batch's policy
+    # version goes with the parameters `args` gives).
+    before_send: Callable[[], None] | None = None
+    sendings: int = 0  # how often it was sent
 
     @classmethod
     def of(cls, actor: str, method: str, *args: Any, then: str = "", **kwargs: Any) -> Call:
@@ -137,6 +147,17 @@ def names_actor(err: BaseException, actor_id: str) -> bool:
     return named == actor_id if named is not None else actor_id in str(err)
 
 
+@dataclass
+class Result:
+    """A call taken back by `ActorManager.fetch_ready`: its value, or the error that ended it
+    (an optional call given up after its actor's loss)."""
+
+    call: Call
+    tag: Any
+    value: Any = None
+    error: BaseException | None = None
+
+
 class ActorManager:
     """Calls to the actors of one run (module doc). Members are added by the clients that call
     them; the first `add` of a name decides whether it restarts."""
@@ -147,6 +168,8 @@ class ActorManager:
         self.deaths = ActorDeaths(None) if deaths is None else deaths
         self.max_failures = max_failures
         self.members: dict[str, Member] = {}
+        self.flying: dict[Call, Any] = {}  # submitted and not taken back: call -> tag
+        self.resent: Counter[str] = Counter()  # calls sent again after a loss, by actor
 
     def add(self, name: str, handle: Any, *, restarts: bool, then: str = "") -> Member:
         """The member `name`, added with these settings where it is new."""
@@ -174,9 +197,74 @@ class ActorManager:
             if self.lost_with_restart(needed):
                 self.send(needed)
         member = self.members[call.actor]
+        if call.before_send is not None:
+            call.before_send()
         call.incarnation = member.incarnation
         call.ref = getattr(member.handle, call.method).remote(*call.args(), **call.kwargs)
+        call.sendings += 1
         return call
+
+    # --- calls in flight -------------------------------------------------------------------
+
+    def submit(self, call: Call, tag: Any = None) -> Call:
+        """Send `call` and keep it in flight, with the caller's `tag`, until `fetch_ready`
+        hands it back."""
+        self.send(call)
+        self.flying[call] = tag
+        return call
+
+    def in_flight(self, actors: Any = None) -> list[Call]:
+        """The calls in flight (to the actors named in `actors`; default: all), oldest
+        first."""
+        return [c for c in self.flying if actors is None or c.actor in actors]
+
+    def has_room(self, actor: str, limit: int) -> bool:
+        """Whether `actor` has fewer than `limit` calls in flight (a cap per actor)."""
+        return sum(c.actor == actor for c in self.flying) < limit
+
+    def tags(self, actors: Any = None) -> list[Any]:
+        """The tags of the calls in flight (to `actors`), oldest first."""
+        return [self.flying[c] for c in self.in_flight(actors)]
+
+    def fetch_ready(self, actors: Any = None, *, block: bool = False) -> list[Result]:
+        """Take back the calls in flight (to `actors`) that are done, without waiting or, with
+        `block`, after waiting for the first of them: the ones that block waited for first,
+        then in the order they were submitted. A call lost with its actor is recovered
+        (`recover`) and sent again, and stays in flight; an optional call given up comes back
+        with its error; an error that is no loss raises."""
+        calls = self.in_flight(actors)
+        if not calls:
+            return []
+        by_ref = {c.ref: c for c in calls}
+        first: list[Any] = []
+        if block:
+            first, _ = self.ray.wait(list(by_ref), num_returns=1)
+        ready, _ = self.ray.wait(list(by_ref), num_returns=len(by_ref), timeout=0)
+        ready = [*first, *(ref for ref in ready if ref not in first)]
+        try:  # one fetch for all of them; where one failed, each on its own
+            values: list[Any] | None = self.ray.get(ready)
+        except Exception:  # noqa: BLE001 - each is fetched again below, its error handled
+            values = None
+        out = []
+        for i, ref in enumerate(ready):
+            call = by_ref[ref]
+            if values is not None:
+                call.failures = 0
+                out.append(Result(call, self.flying.pop(call), values[i]))
+                continue
+            try:
+                value = self.ray.get(ref)
+            except Exception as err:  # noqa: BLE001 - `recover` raises what is no loss
+                if self.recover(call, err):
+                    if call.ref is ref:  # not sent again meanwhile (by a restart hook)
+                        self.send(call)
+                    self.resent[call.actor] += 1
+                    continue
+                out.append(Result(call, self.flying.pop(call), error=err))
+                continue
+            call.failures = 0
+            out.append(Result(call, self.flying.pop(call), value))
+        return out
 
     def get(self, call: Call) -> Any:
         """The result of a sent `call`, waited for; sent again after each loss."""
@@ -195,6 +283,13 @@ class ActorManager:
         """`actor.method(*args, **kwargs)`, waited for; after a restart of `actor` the same call
         runs again."""
         return self.get(self.send(Call.of(actor, method, *args, then=then, **kwargs)))
+
+    def send_lost_again(self, calls: list[Call]) -> None:
+        """Send again, in the order given, each of `calls` whose result died with a restart of
+        its actor (a restart hook: before anything else reaches the restarted actor)."""
+        for call in calls:
+            if self.lost_with_restart(call):
+                self.send(call)
 
     def lost_with_restart(self, call: Call) -> bool:
         """Whether `call` was sent before its actor's newest restart and its result died with
@@ -284,5 +379,5 @@ class ActorManager:
         raise RunStopped(f"{name} did not come back within {timeout_s:.0f} s")
 
 
-__all__ = ["MAX_CALL_FAILURES", "ActorDeaths", "ActorManager", "Call", "Member", "death_cause",
-           "is_lost", "lost_errors"]
+__all__ = ["MAX_CALL_FAILURES", "ActorDeaths", "ActorManager", "Call", "Member", "Result",
+           "death_cause", "is_lost", "lost_errors"]

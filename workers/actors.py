@@ -114,19 +114,16 @@ class LevelServiceActor(DurableLevelService, ActorBase):
         ActorBase.__init__(self, config)
         built = level_service_for(config, learner_for(config))
         super().__init__(built.generator, built.template, config.ued, seed=config.seed,
-                         use_buffer=built.buffer is not None, folder=folder, session=session)
+                         curriculum=built.curriculum, folder=folder, session=session)
 
     def fresh(self, key: jax.Array, n: int) -> EnvParams:
         return to_host(super().fresh(key, n))
 
-    def mutate_ids(self, key: jax.Array, parent_ids: Any) -> EnvParams:
-        return to_host(super().mutate_ids(key, parent_ids))
+    def mutate(self, key: jax.Array, levels: EnvParams) -> EnvParams:
+        return to_host(super().mutate(key, levels))
 
     def sample_learnable(self, key: jax.Array, n: int) -> EnvParams:
         return to_host(super().sample_learnable(key, n))
-
-    def mutate_replay(self, key: jax.Array, replay: Any) -> EnvParams:
-        return to_host(super().mutate_replay(key, replay))
 
     def buffer_bytes(self) -> bytes | None:
         """The level buffer as it is now, in the level-buffer file format (`tabx runs

@@ -71,14 +71,14 @@ import jax
 
 from level_buffer import Source
 from ued.config import TrainConfig
-from ued.curricula import ACCEL, SFL, Branch
+from ued.curricula import Branch, LevelRequest
 from workers.actor_manager import Call
 from workers.durable_service import Slot
 from workers.ray_async import AsyncRun
 from workers.ray_handles import Batch, RemoteLearner
 from workers.ray_restarts import SERVICE, RemoteService
 from workers.ray_start import Workers
-from workers.ued_step import LevelRequest, UEDRun
+from workers.ued_step import UEDRun
 
 BACKGROUND_KEY = 0xC0471  # folded into the seed: the key chain of the Explorers' batches
 SFL_BATCH_KEY = 0x5F1B  # folded into the seed: the keys of SFL's training batches, by step
@@ -93,14 +93,16 @@ class ContinuousRun(AsyncRun):
                  workers: Workers, service: RemoteService, start: int = 0):
         super().__init__(ray, config, run, learner, workers, service, start)
         curriculum = run.curriculum
-        # Robust PLR and ACCEL score new levels without training on them: those scores run
-        # without pause. DR and PLR, which train on every batch, keep the sequential steps.
-        self.scores_apart = any(not curriculum.learns(b) for b in curriculum.branches)
-        # SFL: Explorers score learnability batches without pause; the learner trains on SFL
-        # batches drawn from the learnable set as it stands.
-        self.learnability = isinstance(curriculum, SFL)
+        # What the curriculum's branches and hooks say, never its class: one whose steps
+        # only score new levels (Robust PLR, ACCEL) has them scored without pause; one that
+        # trains on every batch (DR, PLR) keeps the sequential steps.
+        self.scores_apart = curriculum.explores_apart()
+        # SFL steps: Explorers score learnability batches without pause; the learner trains on
+        # SFL batches drawn from the learnable set as it stands.
+        self.learnability = Branch.SFL in curriculum.branches
         self.explores = self.scores_apart or self.learnability
-        self.mutates = isinstance(curriculum, ACCEL)
+        # A MUTATE branch: each replay batch's children are scored next (ACCEL).
+        self.mutates = Branch.MUTATE in curriculum.branches
         self.requests: deque[tuple[LevelRequest, Call]] = deque()  # ACCEL children waiting
         self.key = jax.random.fold_in(jax.random.key(config.seed ^ BACKGROUND_KEY), start)
         self.issued = 0  # Explorer batches issued this session
@@ -120,10 +122,10 @@ class ContinuousRun(AsyncRun):
         if self.paused:
             return
         limit = self.config.ray.max_inflight
-        for i in sorted(range(len(self.scorers)), key=lambda i: self.inflight[i]):
+        for i in sorted(range(len(self.scorers)), key=self.inflight):
             if not self.actors.available(self.names[i]):
                 continue
-            while self.inflight[i] < limit:
+            while self.actors.has_room(self.names[i], limit):
                 self.issue(i)
 
     def batch_keys(self, batch: int) -> tuple[jax.Array, jax.Array]:
@@ -143,7 +145,7 @@ class ContinuousRun(AsyncRun):
         and the service only inserts)."""
         n = self.config.learner.num_envs
         k_levels, key = self.batch_keys(self.issued)
-        score = self.config.ued.score
+        score = self.run.score
         then = "its batches are re-issued with the current policy on its restart"
         if self.learnability:  # SFL: fresh levels the Explorer makes, scored by learnability
             ued = self.config.ued
@@ -173,21 +175,9 @@ class ContinuousRun(AsyncRun):
         """Commit every Explorer result that is ready (waiting for one if `block`), in one
         group commit; refill the Explorers; take the service's acknowledgements."""
         if self.pending:
-            t0 = time.perf_counter()
-            refs = list(self.pending)
-            first: list[Any] = []
-            if block:
-                first, _ = self.ray.wait(refs, num_returns=1)
-                self.stats.wait_for_levels_s += time.perf_counter() - t0
-            ready, _ = self.ray.wait(refs, num_returns=len(refs), timeout=0)
-            ready = [*first, *(ref for ref in ready if ref not in first)]
-            try:  # one call for all of them; where one failed, each on its own
-                results: list[Any] = self.ray.get(ready)
-            except Exception:
-                results = [None] * len(ready)
             group = []
-            for ref, result in zip(ready, results, strict=True):
-                accepted = self.accept(ref, result)
+            for batch, result in self.finished(block):
+                accepted = self.accept(batch, result)
                 if accepted is not None:
                     group.append(accepted)
             if group:
@@ -196,20 +186,13 @@ class ContinuousRun(AsyncRun):
             self.top_up()
         self.service.settle(block=False)
 
-    def accept(self, ref: Any, result: Any = None) -> tuple[Batch, Any, Any, int] | None:
+    def accept(self, batch: Batch, result: Any) -> tuple[Batch, Any, Any, int] | None:
         """`AsyncRun.accept`; a `score_fresh` result also brings its levels: kept on the
         batch (`made`) for its insert."""
-        batch = self.pending[ref]
         if batch.levels is None:
-            if result is None:
-                try:
-                    result = self.ray.get(ref)
-                except Exception:  # AsyncRun.accept fetches it again and re-issues the batch
-                    result = None
-            if result is not None:
-                batch.made = result[3]
-                result = result[:3]
-        return super().accept(ref, result)
+            batch.made = result[3]
+            result = result[:3]
+        return super().accept(batch, result)
 
     def commit_group(self, group: list[tuple[Batch, Any, Any, int]]) -> None:
         """Offer the scored batches of `group` to the buffer in one call (one fsync)."""
@@ -275,7 +258,8 @@ class ContinuousRun(AsyncRun):
         """Commit Explorer results and refill the Explorers until `call` is answered."""
         while True:
             self.top_up()
-            ready, _ = self.ray.wait([call.ref, *self.pending], num_returns=1)
+            refs = [call.ref, *(c.ref for c in self.actors.in_flight(self.names))]
+            ready, _ = self.ray.wait(refs, num_returns=1)
             if ready and ready[0] == call.ref:
                 return
             if self.ray.wait([call.ref], timeout=0)[0]:
@@ -305,7 +289,7 @@ class ContinuousRun(AsyncRun):
         self.top_up()
         self.collect(block=False)
         self.wait_until_filled()
-        n, score = self.config.learner.num_envs, self.config.ued.score
+        n, score = self.config.learner.num_envs, self.run.score
         k_roll, k_edit = jax.random.split(key)
         replay = self.next_replay or self.service.send("replay", n, by_ref=True)
         version = self.learner.version
@@ -322,6 +306,8 @@ class ContinuousRun(AsyncRun):
                                            lambda: (k_edit, replay.ref), after=(replay,)))
             self.requests.append((LevelRequest("mutate_replay", (k_edit,), Source.MUTATION,
                                                ids), levels))
+            # Its children are asked for: nothing is pending for a snapshot to keep.
+            self.run.curriculum.observe(Branch.MUTATE)
         metrics = UEDRun.step_metrics(metrics, Branch.REPLAY, True, self.learner.version)
         return Branch.REPLAY, metrics, None
 

@@ -42,6 +42,7 @@ import numpy as np
 from level_buffer.commit_log import CommitLog, CommitLogError, read
 from tabx.params import EnvParams
 from ued.config import UEDSection
+from ued.curricula import Curriculum
 from ued.levels import LevelGenerator
 from ued.run_folder import SET_ASIDE_DIR
 from workers.level_service import LevelService
@@ -63,9 +64,10 @@ class DurableLevelService(LevelService):
     """A LevelService with a commit log in `folder` (None: none, as the local one)."""
 
     def __init__(self, generator: LevelGenerator, template_level: EnvParams, ued: UEDSection,
-                 seed: int = 0, use_buffer: bool = True, folder: str | Path | None = None,
+                 seed: int = 0, curriculum: Curriculum | None = None,
+                 folder: str | Path | None = None,
                  session: str = "") -> None:
-        super().__init__(generator, template_level, ued, seed=seed, use_buffer=use_buffer)
+        super().__init__(generator, template_level, ued, seed=seed, curriculum=curriculum)
         self.folder = None if folder is None else Path(folder)
         self.session = session
         self.seq = 0  # the newest applied call's sequence number
@@ -151,8 +153,8 @@ class DurableLevelService(LevelService):
     # --- snapshots ---------------------------------------------------------------------------
 
     def save(self, folder: str | Path, step: int, state: dict[str, Any],
-             keep: int | None = None) -> None:
-        super().save(folder, step, state, keep)
+             keep: int | None = None, parents: EnvParams | None = None) -> None:
+        super().save(folder, step, state, keep, parents)
         if self.folder is not None and Path(folder).resolve() == self.folder.resolve():
             self._start(step)
 

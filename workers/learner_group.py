@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any, TextIO
 
 # Calls every member runs together (they run the update, or change the state it starts from).
@@ -73,10 +72,12 @@ class LearnerGroup:
 
 
 class Restarts:
-    """A run's restarts from its last checkpoint after a stop for its lost learner (or
-    a learner group's member: the group stops as a whole), up to `limit`: each is logged with
-    the steps it loses (done since that checkpoint, played again) and counted in `ray.json`
-    (`learner_restarts`, `steps_lost`)."""
+    """A run's restarts after a stop that starting its actors again cures (its lost learner or
+    learner-group member: the group stops as a whole; an actor lost while the actors
+    started), up to `limit` (`ray.learner_restarts`), from its newest intact checkpoint, or
+    from step 0 where it has none: each is logged with what died and the steps it loses
+    (done since that checkpoint, played again) and counted in `ray.json` (`learner_restarts`,
+    `steps_lost`)."""
 
     def __init__(self, limit: int):
         self.limit, self.done, self.steps_lost = limit, 0, 0
@@ -87,24 +88,25 @@ class Restarts:
     def fields(self) -> dict[str, int]:
         return {"learner_restarts": self.done, "steps_lost": self.steps_lost}
 
-    def restart(self, run_dir: Path, start: int, reached: int, max_updates: int | None,
-                stopped: BaseException, stream: TextIO) -> int | None:
-        """Count a restart of the session that ran steps `start` to `reached` of a call that
-        asked for `max_updates` more; return the steps the next session runs (None: to the
-        end)."""
-        from ued.checkpoint import Checkpoints
-        from ued.run_folder import CHECKPOINT_DIR
-
-        with Checkpoints(run_dir / CHECKPOINT_DIR, create=False) as checkpoints:
-            latest = checkpoints.latest() or 0
-        lost = max(reached - latest, 0)
+    def restart(self, reason: str, latest: int | None, session: tuple[int, int] | None,
+                max_updates: int | None, stream: TextIO) -> int | None:
+        """Count a restart after `reason` (what died) from checkpoint `latest` (None: from
+        step 0) of a session that ran from step `session[0]` to `session[1]` (None: it stopped
+        before its first step) in a call that asked for `max_updates` more; return the steps
+        the next session runs (None: to the end)."""
+        back = 0 if latest is None else latest
+        lost = 0 if session is None else max(session[1] - back, 0)
         self.done += 1
         self.steps_lost += lost
-        stream.write(f"ray: restart {self.done} of {self.limit} (ray.learner_restarts) after "
-                     f"{stopped}: the run continues from its checkpoint at step {latest}; "
-                     f"{lost} steps lost ({self.steps_lost} in all)\n")
+        where = (f"continues from its checkpoint at step {latest}" if latest is not None else
+                 "has no checkpoint yet: it starts again from step 0")
+        stream.write(f"ray: {reason}: restart {self.done} of {self.limit} "
+                     f"(ray.learner_restarts): the run {where}; {lost} steps lost "
+                     f"({self.steps_lost} in all)\n")
         stream.flush()
-        return None if max_updates is None else start + max_updates - latest
+        if max_updates is None or session is None:
+            return max_updates
+        return session[0] + max_updates - back
 
 
 def coordinator_address(ray: Any, placement_group: Any) -> str:

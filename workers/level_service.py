@@ -8,6 +8,8 @@ saves and loads itself as files in a snapshot folder:
     learnable-<step>.msgpack    SFL's learnable set (a buffer whose scores are p (1 - p))
     sfl-window-<step>.msgpack   SFL's newest scored batches, each one's most learnable levels
                                 (`add_learnable`, the Ray driver's continuous schedule)
+    parents-<step>.msgpack      the levels the run's next step edits (ACCEL after a replay
+                                step), in order: the buffer may have evicted some of them
     state-<step>.json           the caller's small state (the curriculum's); written last, so
                                 its presence marks a complete snapshot
 
@@ -31,19 +33,11 @@ from level_buffer import BufferConfig, InsertResult, LevelBuffer, Replay, Source
 from tabx.files import atomic_write_text
 from tabx.params import EnvParams
 from ued.config import UEDSection
+from ued.curricula import Curriculum
 from ued.levels import LevelGenerator
 from ued.run_folder import SNAPSHOT_FILES
 
 SNAPSHOT_PATTERN = re.compile(r"^state-(\d+)\.json$")
-
-
-def buffer_config(ued: UEDSection) -> BufferConfig:
-    """The level buffer settings of a UED config section."""
-    return BufferConfig(capacity=ued.buffer_size, replay_prob=ued.replay_prob,
-                        staleness_coeff=ued.staleness_coef,
-                        minimum_fill_ratio=ued.min_fill_ratio,
-                        prioritization=ued.prioritization, temperature=ued.temperature,
-                        topk_k=ued.topk, duplicate_check=ued.duplicate_check)
 
 
 def to_host(levels: EnvParams) -> EnvParams:
@@ -59,16 +53,19 @@ def to_device(levels: EnvParams) -> EnvParams:
 
 
 class LevelService:
-    """Generator + mutator + buffer (+ SFL's learnable set)."""
+    """Generator + mutator + buffer (+ SFL's learnable set). `curriculum`: the run's method,
+    for what the buffer does its way (`buffer_config`: its settings, none where it keeps no
+    buffer; `insert_scores`: the scores new levels enter with); None: no buffer."""
 
     def __init__(self, generator: LevelGenerator, template_level: EnvParams, ued: UEDSection,
-                 seed: int = 0, use_buffer: bool = True):
+                 seed: int = 0, curriculum: Curriculum | None = None):
         self.generator = generator
         self.ued = ued
         self.seed = seed
         self.template = to_host(template_level)
-        self.buffer = (LevelBuffer(self.template, buffer_config(ued), seed=seed)
-                       if use_buffer else None)
+        self.curriculum = curriculum
+        self.buffer = (LevelBuffer(self.template, curriculum.buffer_config(ued), seed=seed)
+                       if curriculum is not None and curriculum.uses_buffer else None)
         self.learnable: LevelBuffer | None = None
         # The continuous schedule's window (`add_learnable`): the `sfl_top_k` most learnable
         # levels of each of the newest `sfl_num_batches` committed batches, in commit order.
@@ -88,14 +85,18 @@ class LevelService:
         """The stored levels of these ids (in order)."""
         return self._need_buffer().get(np.asarray(ids, np.int64))
 
+    def stored_levels(self, ids: Any) -> EnvParams | None:
+        """The stored levels of these ids (in order), or None when the buffer no longer holds
+        one of them."""
+        buffer = self._need_buffer()
+        ids = np.asarray(ids, np.int64).reshape(-1)
+        if not np.isin(ids, buffer.ids).all():
+            return None
+        return buffer.get(ids)
+
     def mutate(self, key: jax.Array, levels: EnvParams) -> EnvParams:
         """ACCEL children: `levels.num_edits` edits of each level."""
         return self.generator.mutate(key, to_device(levels))
-
-    def mutate_ids(self, key: jax.Array, parent_ids: Any) -> EnvParams:
-        """ACCEL children of the stored levels `parent_ids` (read and edited in one call, so
-        no insert can evict a parent in between)."""
-        return self.mutate(key, self.get(parent_ids))
 
     def mutate_replay(self, key: jax.Array, replay: Replay) -> EnvParams:
         """ACCEL children of a replay batch's levels (as drawn: a parent evicted since then
@@ -118,9 +119,12 @@ class LevelService:
 
     def insert(self, levels: EnvParams, scores: Any, max_returns: Any, policy_version: int,
                source: Source = Source.RANDOM, parent_ids: Any = -1) -> InsertResult:
-        """Offer scored new (or mutated) levels to the buffer."""
-        return self._need_buffer().insert_batch(
-            to_host(levels), np.asarray(scores, np.float64), sources=source,
+        """Offer scored new (or mutated) levels to the buffer, with the scores the curriculum
+        gives them (`Curriculum.insert_scores`)."""
+        buffer, levels = self._need_buffer(), to_host(levels)
+        scores = self.curriculum.insert_scores(levels, np.asarray(scores, np.float64), buffer)
+        return buffer.insert_batch(
+            levels, np.asarray(scores, np.float64), sources=source,
             parent_ids=parent_ids, policy_versions=policy_version,
             max_returns=np.asarray(max_returns, np.float64))
 
@@ -224,11 +228,16 @@ class LevelService:
     # --- snapshots ---------------------------------------------------------------------------
 
     def save(self, folder: str | os.PathLike, step: int, state: dict[str, Any],
-             keep: int | None = None) -> None:
-        """Write the snapshot of step `step` atomically: the buffer, the SFL set and the
-        caller's `state` (JSON-able); then delete all but the newest `keep` snapshots."""
+             keep: int | None = None, parents: EnvParams | None = None) -> None:
+        """Write the snapshot of step `step` atomically: the buffer, the SFL set, `parents`
+        (the levels the next step edits, if any) and the caller's `state` (JSON-able); then
+        delete all but the newest `keep` snapshots."""
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
+        if parents is not None:
+            count = jax.tree.leaves(parents)[0].shape[0]
+            self._level_set(to_host(parents), np.zeros(count)).save(
+                folder / f"parents-{step}.msgpack")
         if self.buffer is not None:
             self.buffer.save(folder / f"buffer-{step}.msgpack")
         if self.learnable is not None:
@@ -259,6 +268,15 @@ class LevelService:
         path = folder / f"sfl-window-{step}.msgpack"
         self.sfl_window = LevelBuffer.load(path, self.template) if path.is_file() else None
         return state
+
+    def load_parents(self, folder: str | os.PathLike, step: int) -> EnvParams | None:
+        """The levels `save` kept as the next step's parents at step `step`, in order; None
+        when that snapshot kept none."""
+        path = Path(folder) / f"parents-{step}.msgpack"
+        if not path.is_file():
+            return None
+        parents = LevelBuffer.load(path, self.template)
+        return parents.get(parents.ids)
 
     def _need_buffer(self) -> LevelBuffer:
         if self.buffer is None:
@@ -298,5 +316,5 @@ def snapshot_steps(folder: str | os.PathLike) -> list[int]:
     return sorted(steps)
 
 
-__all__ = ["LevelService", "buffer_config", "most_learnable", "sfl_split", "snapshot_steps",
+__all__ = ["LevelService", "most_learnable", "sfl_split", "snapshot_steps",
            "to_device", "to_host"]

@@ -72,6 +72,7 @@ class MARLRunner(Runner):
 
     def restore(self, run_dir: Path, train_state: Any, start: int) -> None:
         self.train_state = train_state
+        return None
 
     def headline(self, run_dir: Path, start: int) -> str:
         config = self.config
@@ -241,9 +242,10 @@ class UEDRunner(Runner):
     def template(self) -> Any:
         return self.train_state
 
-    def restore(self, run_dir: Path, train_state: Any, start: int) -> None:
+    def restore(self, run_dir: Path, train_state: Any, start: int) -> str | None:
         self.train_state = train_state
-        self.version = self.run.resume(run_dir, start)
+        self.version, note = self.run.resume(run_dir, start)
+        return note
 
     def begin(self, start: int) -> None:
         self.learner = LearnerWorker(self.ppo, self.train_state, self.version)

@@ -14,23 +14,24 @@ import jax
 import numpy as np
 
 from ued.config import TrainConfig
-from ued.curricula import Branch
+from ued.curricula import Branch, LevelRequest
 from ued.tensorboard import SummaryWriter
 from workers.actor_manager import Call
 from workers.ray_handles import Batch, Evaluation, RemoteLearner
 from workers.ray_restarts import SERVICE, RemoteService
 from workers.ray_start import Workers
 from workers.ray_stats import RayStats
-from workers.ued_step import LevelRequest, UEDRun
+from workers.ued_step import UEDRun
 
 T = TypeVar("T")
 
 
 class AsyncRun:
     """The asynchronous schedule over the actors of one run (see the module doc). Its calls go
-    through the run's ActorManager (`service.actors`): a batch or an evaluation lost with its
-    actor is sent again on the restart. `start`: the session's first step (a schedule of its
-    own key chain uses it; this one takes its keys from the steps)."""
+    through the run's ActorManager (`service.actors`), which keeps them in flight and sends a
+    batch or an evaluation lost with its actor again on the restart (with the current policy).
+    `start`: the session's first step (a schedule of its own key chain uses it; this one takes
+    its keys from the steps)."""
 
     def __init__(self, ray: Any, config: TrainConfig, run: UEDRun, learner: RemoteLearner,
                  workers: Workers, service: RemoteService, start: int = 0):
@@ -43,12 +44,18 @@ class AsyncRun:
         self.actors = service.actors
         workers.register(self.actors)
         self.service.on_restart.append(self.ask_again_for_lost_levels)
-        self.pending: dict[Any, Batch] = {}
-        self.inflight = [0] * len(self.scorers)
         self.stats = RayStats()
         self.ledger: dict[int, str] = {}  # step -> "issued" | "committed"
         self.recent_lags: deque[int] = deque(maxlen=1000)
-        self.evaluations: list[Evaluation] = []  # running
+
+    @property
+    def pending(self) -> list[Batch]:
+        """The Explorer batches in flight, oldest first (the ActorManager keeps them)."""
+        return self.actors.tags(self.names)
+
+    def inflight(self, i: int) -> int:
+        """Batches in flight to Explorer `i`."""
+        return len(self.actors.in_flight([self.names[i]]))
 
     # Evaluation runs beside training: submitted at its steps, logged when it is done -------
 
@@ -63,38 +70,35 @@ class AsyncRun:
                            then=f"its evaluation of {name} after step {done} runs again on "
                                 f"its restart")
             call.optional = True
-            self.evaluations.append(Evaluation(done, name, self.actors.send(call)))
+            self.actors.submit(call, Evaluation(done, name, call))
+
+    @property
+    def evaluations(self) -> list[Evaluation]:
+        """The evaluations running, oldest first."""
+        return self.actors.tags(["evaluator"])
 
     def log_evaluations(self, writer: SummaryWriter, stream: TextIO | None,
                         block: bool = False) -> None:
-        """Log the evaluations that are done. One whose Evaluator died runs again, with the
-        same parameters and key, once the Evaluator is back; one the ActorManager gives up
-        is counted (`evaluations_lost`) and training goes on."""
+        """Log the evaluations that are done (with `block`: all of them, waiting). One whose
+        Evaluator died runs again, with the same parameters and key, once the Evaluator is
+        back (the ActorManager sends it again); one the ActorManager gives up is counted
+        (`evaluations_lost`) and training goes on."""
         from workers.evaluator import log
 
-        waiting, self.evaluations = self.evaluations, []
-        for evaluation in waiting:
-            ready, _ = self.ray.wait([evaluation.call.ref], timeout=None if block else 0)
-            if not ready:
-                self.evaluations.append(evaluation)
-                continue
-            try:
-                result = self.ray.get(evaluation.call.ref)
-            except Exception as err:
-                if self.actors.recover(evaluation.call, err):
-                    self.stats.evaluations_rerun += 1
-                    self.actors.send(evaluation.call)
-                    self.evaluations.append(evaluation)
-                else:
+        while True:
+            for done in self.actors.fetch_ready(["evaluator"], block=block):
+                evaluation = done.tag
+                if done.error is not None:
                     self.stats.evaluations_lost += 1
-                continue
-            log(writer, evaluation.step * self.config.learner.steps_per_update, result)
-            if stream is not None:
-                stream.write(f"  eval {evaluation.suite} after step {evaluation.step}: mean "
-                             f"win rate {result.mean_win_rate:.2f}\n")
-                stream.flush()
-        if block and self.evaluations:  # re-run ones: wait for them too
-            self.log_evaluations(writer, stream, block=True)
+                    continue
+                log(writer, evaluation.step * self.config.learner.steps_per_update, done.value)
+                if stream is not None:
+                    stream.write(f"  eval {evaluation.suite} after step {evaluation.step}: "
+                                 f"mean win rate {done.value.mean_win_rate:.2f}\n")
+                    stream.flush()
+            self.stats.evaluations_rerun = self.actors.resent["evaluator"]
+            if not (block and self.evaluations):
+                return
 
     def background_steps(self) -> int:
         """Env steps explored beside the steps this session (none: every batch this schedule
@@ -120,30 +124,32 @@ class AsyncRun:
         """An explorer with room, waiting for results (and committing them) until one has."""
         limit = self.config.ray.max_inflight
         while True:
-            free = [i for i, n in enumerate(self.inflight) if n < limit]
+            free = [i for i, name in enumerate(self.names) if self.actors.has_room(name, limit)]
             if free:
-                return min(free, key=lambda i: self.inflight[i])
+                return min(free, key=self.inflight)
             self.collect(block=True)
 
     def _submit(self, batch: Batch) -> None:
-        """Send (again) `batch`'s scoring to its Explorer, with the current policy."""
-        batch.version = self.learner.version
-        ref = self.actors.send(batch.score).ref
-        self.pending[ref] = batch
-        self.inflight[batch.explorer] += 1
+        """Send `batch`'s scoring to its Explorer, with the current policy (at every sending:
+        the ActorManager sends it again after its Explorer's death)."""
+        def current_policy() -> None:
+            batch.version = self.learner.version
+
+        batch.score.before_send = current_policy
+        self.actors.submit(batch.score, batch)
 
     def explore(self, learner: RemoteLearner, step: int, request: LevelRequest,
                 key: jax.Array) -> tuple[None, None]:
         """Issue step `step` (the schedule's `explore`): the service makes its levels
         (`request`), an Explorer scores them; the driver holds only the refs. Committed when
         the result arrives (`collect`)."""
-        # The levels are asked for before waiting for an Explorer: waiting commits finished
-        # batches, and an insert sent before an ACCEL `mutate_ids` could evict the replayed
-        # parents it names (the service answers one caller's calls in the order sent).
+        # The levels are asked for before waiting for an Explorer, which commits finished
+        # batches meanwhile (ACCEL's children are made from the replayed levels themselves,
+        # so an insert that evicts a parent changes nothing).
         levels = self.actors.send(Call.of(SERVICE, request.method, *request.args))
         i = self._free_explorer()
         batch = Batch(step, request, key, learner.version, i, levels)
-        score = self.config.ued.score
+        score = self.run.score
         # Rebuilt at every sending: the current policy, the levels as asked for last (the
         # closure holds the levels' call, not the batch: no cycle keeps refs alive).
         batch.score = Call(self.names[i], "score_levels",
@@ -166,38 +172,35 @@ class AsyncRun:
     def ask_again_for_lost_levels(self) -> None:
         """After a restart of the service: ask again, in step order and before anything else,
         for the levels of every batch that died with it. Same calls, same keys: the restored
-        service makes the same levels (an ACCEL parent is still in the buffer, since the
-        inserts after it run after it, as before)."""
-        for batch in sorted(self.pending.values(), key=lambda b: b.step):
-            if batch.levels is not None and self.actors.lost_with_restart(batch.levels):
-                self.actors.send(batch.levels)
+        service makes the same levels."""
+        self.actors.send_lost_again([batch.levels for batch in
+                                     sorted(self.pending, key=lambda b: b.step)
+                                     if batch.levels is not None])
+
+    def finished(self, block: bool) -> list[tuple[Batch, Any]]:
+        """The Explorer batches that are done, with their results (waiting for one if
+        `block`); a batch lost with its Explorer (or with the service before it made its
+        levels) is sent again by the ActorManager with the current policy and stays in
+        flight."""
+        t0 = time.perf_counter()
+        done = self.actors.fetch_ready(self.names, block=block)
+        self.stats.wait_for_levels_s += time.perf_counter() - t0 if block else 0.0
+        self.stats.reissued = sum(self.actors.resent[name] for name in self.names)
+        return [(result.tag, result.value) for result in done]
 
     def collect(self, block: bool) -> None:
         """Commit the explorer results that are ready (wait for one if `block`)."""
         if not self.pending:
             return
-        t0 = time.perf_counter()
-        ready, _ = self.ray.wait(list(self.pending), num_returns=1,
-                                 timeout=None if block else 0)
-        if block:
-            self.stats.wait_for_levels_s += time.perf_counter() - t0
-        for ref in ready:
-            accepted = self.accept(ref)
+        for batch, result in self.finished(block):
+            accepted = self.accept(batch, result)
             if accepted is not None:
                 self.commit(*accepted)
 
-    def accept(self, ref: Any, result: Any = None) -> tuple[Batch, Any, Any, int] | None:
-        """Take the finished Explorer call `ref` (its `result` when already fetched) off the
-        pending ones: (batch, scores, best, policy lag) to commit, or None when the call
-        failed (re-issued) or its policy is too old (scored again)."""
-        batch = self.pending.pop(ref)
-        self.inflight[batch.explorer] -= 1
-        try:
-            _, scores, best = self.ray.get(ref) if result is None else result
-        except Exception as err:
-            self.reissue(batch, err)
-            return None
-        batch.score.failures = 0
+    def accept(self, batch: Batch, result: Any) -> tuple[Batch, Any, Any, int] | None:
+        """A finished Explorer batch and its result: (batch, scores, best, policy lag) to
+        commit, or None when its policy is too old (scored again)."""
+        _, scores, best = result
         lag = self.learner.version - batch.version
         if lag > self.config.ray.max_policy_lag:
             # Too old to trust: score the same levels again with the current policy.
@@ -206,17 +209,6 @@ class AsyncRun:
             self._submit(batch)
             return None
         return batch, scores, best, lag
-
-    def reissue(self, batch: Batch, err: Exception) -> None:
-        """`batch` was lost (its Explorer died, or the service before it made the levels): once
-        the ActorManager has the actor back, submit it again with the current parameters (Ray's
-        own retry would reuse the old ones); levels lost with the service are asked for
-        again first (`ActorManager.send`)."""
-        t0 = time.perf_counter()
-        self.actors.recover(batch.score, err)  # raises where the run stops
-        self.stats.wait_for_levels_s += time.perf_counter() - t0
-        self.stats.reissued += 1
-        self._submit(batch)
 
     def commit(self, batch: Batch, scores: np.ndarray, best: np.ndarray, lag: int) -> None:
         self.run.commit(batch.request, batch.levels.ref, scores, best, batch.version)

@@ -59,6 +59,7 @@ from workers.ray_restarts import SERVICE, Chaos, RemoteService
 from workers.ray_start import (
     RAY_NAMESPACE,
     Workers,
+    address_setting,
     check_reachable,
     connect,
     import_ray,
@@ -69,6 +70,7 @@ from workers.ray_start import (
     start_workers,
 )
 from workers.ray_stats import RateWindow, live_actors
+from workers.resume import resume_point, what_resume_does
 from workers.training_loop import Output, Report, Runner, train_loop
 from workers.ued_step import UEDRun, branch_text
 
@@ -95,16 +97,31 @@ def lost_learner(ray: Any, err: BaseException, workers: Workers | None) -> bool:
     return any(names_actor(err, member._actor_id.hex()) for member in members)
 
 
-def stop_reason(ray: Any, err: BaseException) -> str | None:
+def stop_reason(ray: Any, err: BaseException, workers: Workers | None) -> str | None:
     """Why the run stops where `err` means it cannot go on but can be resumed: a RunStopped
     (a learner lost, a call's failure budget spent, an actor not back) or a loss the
     ActorManager did not see (an actor or node lost at start-up, the driver's own raylet);
-    None for any other error."""
+    None for any other error. A lost actor is named: `NAME died (CAUSE)`."""
     if isinstance(err, RunStopped):
+        cause = err.__cause__
+        if err.lost and cause is not None and is_lost(ray, cause):
+            return f"{err.lost} died ({death_cause(cause)})"
         return str(err)
+    if lost_learner(ray, err, workers):
+        return f"learner died ({death_cause(err)})"
     if is_lost(ray, err) or isinstance(err, ray.exceptions.LocalRayletDiedError):
         return f"an actor of the run died ({death_cause(err)})"
     return None
+
+
+def restarts_the_run(stopped: RunStopped, session: tuple[int, int] | None) -> bool:
+    """Whether starting the run's actors again (`ray.learner_restarts`) answers `stopped`:
+    the learner (or a learner-group member) lost, the one actor Ray does not restart in
+    place, or any actor lost while the actors started (`session` None: before the first
+    step), which nothing restarted. Another actor's stop mid-run came after Ray restarted it
+    in place until its budget was spent: starting every actor again would meet the same
+    fault."""
+    return stopped.lost == "learner" or (bool(stopped.lost) and session is None)
 
 
 def need_ued(config: TrainConfig) -> None:
@@ -159,19 +176,22 @@ class RayDriver(Driver):
         keep_driver_off_accelerators()
         need_ued(config)
         ray = import_ray()
-        address = join_address(config.ray)
+        address, setting = address_setting(config.ray)
         if address:
-            check_reachable(address)
+            check_reachable(address, setting)
         elif not ray.is_initialized():
             local_plan(config.ray, *local_resources())
 
     def run(self, config: TrainConfig, run_dir: Path, *, resume: bool = False,
             max_updates: int | None = None, progress: bool = True,
             stream: TextIO | None = None, callback: Callback | None = None) -> Path:
-        """The run, continued from its last checkpoint after each stop for its lost learner
-        (or a member of its learner group) up to `ray.learner_restarts` times
-        (`workers.learner_group.Restarts`); a stop for any other actor (restarted in place
-        by Ray until its own budget is spent) ends the run (`lost_learner`)."""
+        """The run, started again from its newest intact checkpoint (from step 0 before the
+        first) after each stop for its lost learner (or a member of its learner group), or
+        for an actor lost while the actors started, up to `ray.learner_restarts` times
+        (`restarts_the_run`, `workers.learner_group.Restarts`): the path `tabx train
+        --resume` takes. A stop for another actor (restarted in place by Ray until its own
+        budget was spent), or one with the budget spent, ends the run in one line naming
+        what died and what `--resume` will do."""
         need_ued(config)
         keep_driver_off_accelerators()
         stream = sys.stderr if stream is None else stream
@@ -184,11 +204,22 @@ class RayDriver(Driver):
                                     restarts=restarts)
             except RunStopped as stopped:
                 runner = self.runner
-                if runner is None or stopped.lost != "learner" or not restarts.left():
-                    raise
-                max_updates = restarts.restart(run_dir, runner.start, runner.reached,
-                                               max_updates, stopped, stream)
-                resume = True
+                session = (None if runner is None or runner.reached is None
+                           else (runner.start, runner.reached))
+                restart = restarts_the_run(stopped, session)
+                reason = f"{stopped}{' while the run started' if session is None else ''}"
+                latest, saved = resume_point(run_dir, config)
+                if restart and restarts.left() and (latest is not None or not saved):
+                    max_updates = restarts.restart(reason, latest, session, max_updates,
+                                                   stream)
+                    resume = True
+                    continue
+                spent = (f"; ray.learner_restarts ({restarts.limit}) spent"
+                         if restart and not restarts.left() else "")
+                text = f"{reason}{spent}; {what_resume_does(run_dir, config)}"
+                stream.write(f"ray: the run stops: {text}\n")
+                stream.flush()
+                raise RunStopped(f"{run_dir}: {text}", lost=stopped.lost) from stopped
 
     def session(self, config: TrainConfig, run_dir: Path, *, resume: bool,
                 max_updates: int | None, progress: bool, stream: TextIO,
@@ -218,17 +249,15 @@ class RayDriver(Driver):
             record.update(status="finished")
             return run_dir
         except BaseException as err:
-            reason = stop_reason(ray, err)
+            reason = stop_reason(ray, err, workers)
             if reason is None:  # an error or Ctrl-C: the record says the run is over
                 if record.data:
                     record.update(status="stopped", error=f"{type(err).__name__}: {err}")
                 raise
-            stream.write(f"ray: the run stops: {reason}\n")
-            stream.flush()
             record.update(status="stopped", error=reason)
-            raise RunStopped(f"{run_dir}: {reason}; continue from the last checkpoint with: "
-                             f"tabx train --resume {run_dir}",
-                             lost="learner" if lost_learner(ray, err, workers) else "") from err
+            lost = ("learner" if lost_learner(ray, err, workers) else
+                    err.lost if isinstance(err, RunStopped) else "")
+            raise RunStopped(reason, lost=lost) from err
         finally:
             if workers is not None:
                 for actor in workers.all():
@@ -268,8 +297,11 @@ class RayRunner(Runner):
         self.asynchronous: AsyncRun | None = None
         self.chaos: Chaos | None = None
         self._asked: tuple[Call, Call] | None = None  # the service's statistics, asked for
-        self.reached = 0  # steps done (a restart after a loss counts those since the checkpoint)
-        self.rate = RateWindow()  # env steps/s in ray.json, over RATE_WINDOW_S
+        # Steps done (a restart after a loss counts those since the checkpoint); None until
+        # `begin`: a loss before it stopped the session before its first step.
+        self.reached: int | None = None
+        # trained and explored env steps/s in ray.json, over RATE_WINDOW_S
+        self.rate = RateWindow()
         self.learner_first_s: float | None = None  # the learner's first update, compile included
         self.first_said = False
 
@@ -286,15 +318,16 @@ class RayRunner(Runner):
     def template(self) -> Any:
         return self.actors.call("learner", "train_state")
 
-    def restore(self, run_dir: Path, train_state: Any, start: int) -> None:
-        self.version = self.run.resume(run_dir, start)
+    def restore(self, run_dir: Path, train_state: Any, start: int) -> str | None:
+        self.version, note = self.run.resume(run_dir, start)
         self.actors.call("learner", "set_train_state", train_state, self.version)
+        return note
 
     def begin(self, start: int) -> None:
         ray, workers, config = self.ray, self.workers, self.config
         self.start = self.reached = start
-        self.rate = RateWindow(start=(start * config.learner.steps_per_update,))
-        self.learner = RemoteLearner(ray, workers.learner, self.version, self.actors)
+        self.rate = RateWindow()
+        self.learner = RemoteLearner(ray, workers.learner, self.actors, self.version)
         placement = workers.placement(ray)
         group = workers.learner if isinstance(workers.learner, LearnerGroup) else None
         self.record.update(mode=self.mode, learner_gpus=workers.gpus,
@@ -395,9 +428,13 @@ class RayRunner(Runner):
                                           f" s (compilation included)\n")
                 report.output.notes.flush()
         report.show(values, None, extra=extra, callback=False)
-        (rate,) = self.rate.add(report.done * self.config.learner.steps_per_update)
-        self.record.update(background=True, steps=[self.start, report.done],
-                           env_steps_per_s=rate, rate_window_s=round(self.rate.span_s, 1),
+        played = report.played  # the loop's trained and explored env steps (Explorers' too)
+        rates = {}
+        if played is not None and played.explored is not None:
+            trained, explored = self.rate.add(played.trained, played.explored)
+            rates = {"trained_steps_per_s": trained, "explored_steps_per_s": explored,
+                     "rate_window_s": round(self.rate.span_s, 1)}
+        self.record.update(background=True, steps=[self.start, report.done], **rates,
                            buffer_size=buffer_size, **self.schedule_fields())
         callback = report.output.callback
         if callback is not None:

@@ -11,12 +11,12 @@ from typing import Any
 import jax
 import numpy as np
 
+from ued.curricula import LevelRequest
 from ued.tensorboard import SummaryWriter
 from workers.actor_manager import ActorManager, Call
 from workers.actors import (
     ParamsRef,
 )
-from workers.ued_step import LevelRequest
 
 # --- the deterministic mode: the local step logic over blocking calls -------------------------
 
@@ -25,9 +25,8 @@ class RemoteLearner:
     """The learner actor behind `workers.learner.LearnerWorker`'s interface, with the policy version
     counted here and the parameters fetched once per version (a ref owned by the driver)."""
 
-    def __init__(self, ray: Any, actor: Any, version: int = 0,
-                 actors: ActorManager | None = None):
-        self._actors = ActorManager(ray) if actors is None else actors
+    def __init__(self, ray: Any, actor: Any, actors: ActorManager, version: int = 0):
+        self._actors = actors
         self._actors.add("learner", actor, restarts=False)
         self._actor = actor
         self.version = int(version)
@@ -58,13 +57,12 @@ class RemoteLearner:
 class ExplorerPool:
     """Explorer actors behind `workers.explorer.Explorer`'s interface: calls go round-robin and
     wait (the deterministic mode). A call whose Explorer dies runs again on its restart with
-    the same arguments: in this mode they are what the schedule asks for. `actors`: the run's
-    ActorManager (where the Explorers restart); without one, a death raises."""
+    the same arguments: in this mode they are what the schedule asks for. `manager`: the run's
+    ActorManager (where the Explorers restart), `names` theirs in it."""
 
-    def __init__(self, ray: Any, actors: list[Any], names: list[str] | None = None,
-                 manager: ActorManager | None = None):
-        self._manager = ActorManager(ray) if manager is None else manager
-        self._names = names or [f"scorer-{i}" for i in range(len(actors))]
+    def __init__(self, ray: Any, actors: list[Any], names: list[str], manager: ActorManager):
+        self._manager = manager
+        self._names = names
         for name, actor in zip(self._names, actors, strict=True):
             self._manager.add(name, actor, restarts=False)
         self._next = 0
@@ -101,8 +99,8 @@ class RemoteEvaluator:
     An evaluation whose actor dies runs again on its restart (same parameters and key)."""
 
     def __init__(self, ray: Any, actor: Any, index: int, suite_name: str,
-                 actors: ActorManager | None = None):
-        self._actors = ActorManager(ray) if actors is None else actors
+                 actors: ActorManager):
+        self._actors = actors
         self._actors.add("evaluator", actor, restarts=False)
         self.index = index
         self.suite = _SuiteName(suite_name)

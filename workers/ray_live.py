@@ -51,6 +51,26 @@ def driver_alive(record: dict[str, Any]) -> bool:
     return True
 
 
+def rate_lines(record: dict[str, Any]) -> list[str]:
+    """The rate line of `tabx runs status`: env steps/s that trained the policy and those
+    played only to score levels, over the record's window (a record written before the split
+    was kept holds one rate: the loop's steps, trained or not)."""
+    window = record.get("rate_window_s")
+    over = f" over the last {window:.0f} s" if window else ""
+    buffer = f"; buffer: {record.get('buffer_size')}"
+    trained = record.get("trained_steps_per_s")
+    if isinstance(trained, int | float):
+        explored = record.get("explored_steps_per_s")
+        split = (f", explored {explored:,.0f}" if isinstance(explored, int | float) else
+                 " (explored: not recorded)")
+        return [f"env steps/s{over}: trained {trained:,.0f}{split}{buffer}"]
+    rate = record.get("env_steps_per_s")
+    if isinstance(rate, int | float) and rate:
+        return [f"env steps/s of the loop's steps, trained or explored{over}: {rate:,.0f}"
+                f"{buffer}"]
+    return []
+
+
 def status_text(run_dir: str | Path, record: dict[str, Any]) -> str:
     """`tabx runs status`: the run's state, actors and nodes, restarts, rate and staleness."""
     status = record["status"]
@@ -63,11 +83,7 @@ def status_text(run_dir: str | Path, record: dict[str, Any]) -> str:
              f"{f' of {total}' if total else ''} (this session from step {first})"]
     if record.get("error"):
         lines.append(f"stopped by: {record['error']}")
-    rate = record.get("env_steps_per_s")
-    if rate:
-        window = record.get("rate_window_s")
-        over = f" (over the last {window:.0f} s)" if window else ""
-        lines.append(f"env steps/s: {rate:,.0f}{over}; buffer: {record.get('buffer_size')}")
+    lines.extend(rate_lines(record))
     if "trained_steps" in record:
         lines.append(f"trained env steps: {record['trained_steps']:,}, explored: "
                      f"{record.get('explored_steps', 0):,}; committed batches "
@@ -109,7 +125,7 @@ def live_buffer(run_dir: str | Path, timeout_s: float = 60.0) -> tuple[LevelBuff
         raise UserError(f"{Path(run_dir) / RAY_RECORD}: no address, namespace or service "
                         f"actor recorded")
     try:
-        check_reachable(address)
+        check_reachable(address, f"{RAY_RECORD}'s address")
     except ConfigError as err:
         raise UserError(f"{run_dir}: {err}") from None
     connected_here = not ray.is_initialized()

@@ -19,7 +19,7 @@ import time
 from collections.abc import Callable
 from typing import Any, TextIO
 
-from workers.actor_manager import ActorDeaths, ActorManager, Call
+from workers.actor_manager import ActorManager, Call
 from workers.durable_service import MUTATING
 
 SERVICE = "service"  # the level service's name in the run's ActorManager
@@ -32,10 +32,10 @@ class RemoteService:
     is sent again (`ActorManager`). State-changing calls carry a sequence number (`apply`), so
     that one the service had logged before it died is answered, not applied again.
 
-    `actors`: the run's ActorManager, or an ActorDeaths for a manager of the service alone."""
+    `actors`: the run's ActorManager."""
 
-    def __init__(self, ray: Any, actor: Any, actors: ActorManager | ActorDeaths):
-        self.actors = actors if isinstance(actors, ActorManager) else ActorManager(ray, actors)
+    def __init__(self, ray: Any, actor: Any, actors: ActorManager):
+        self.actors = actors
         self.actor = actor
         self._member = self.actors.add(SERVICE, actor, restarts=True, then=(
             "it restarts from its snapshot and commit log"))
@@ -126,9 +126,7 @@ class RemoteService:
             self.get(call)
 
     def _send_lost_again(self) -> None:
-        for call in list(self.unanswered):
-            if self.actors.lost_with_restart(call):
-                self.actors.send(call)
+        self.actors.send_lost_again(list(self.unanswered))
 
 
 class Chaos:

@@ -22,14 +22,15 @@ from typing import Any, TextIO
 import jax
 
 from ued.config import ConfigError, RaySection, TrainConfig
-from workers.actor_manager import ActorManager
+from workers.actor_manager import ActorManager, death_cause, is_lost
 from workers.actors import (
     EvaluatorActor,
     ExplorerActor,
     LearnerActor,
     LevelServiceActor,
 )
-from workers.learner_group import start_group
+from workers.driver import RunStopped
+from workers.learner_group import LearnerGroup, start_group
 
 RAY_ENV = {"RAY_USAGE_STATS_ENABLED": "0"}
 RAY_NAMESPACE = "tabx-ued"  # of the named actors of runs (`tabx runs buffer` finds them)
@@ -62,7 +63,15 @@ def keep_driver_off_accelerators() -> bool:
 def join_address(section: RaySection) -> str:
     """The cluster a run joins: `ray.address`, else `RAY_ADDRESS` as Ray's own tools read it
     (a `ray job submit` entrypoint has it), else "": a Ray of the run's own on this machine."""
-    return section.address or os.environ.get("RAY_ADDRESS", "")
+    return address_setting(section)[0]
+
+
+def address_setting(section: RaySection) -> tuple[str, str]:
+    """(`join_address`, the setting it comes from: `ray.address` or `RAY_ADDRESS`), for an
+    error to name the one the user set."""
+    if section.address:
+        return section.address, "ray.address"
+    return os.environ.get("RAY_ADDRESS", ""), "RAY_ADDRESS"
 
 
 def connect(section: RaySection, num_cpus: int | None = None) -> tuple[Any, bool]:
@@ -73,9 +82,9 @@ def connect(section: RaySection, num_cpus: int | None = None) -> tuple[Any, bool
     if ray.is_initialized():
         return ray, False
     kwargs: dict[str, Any] = {"logging_level": "WARNING", "log_to_driver": True}
-    address = join_address(section)
+    address, setting = address_setting(section)
     if address:
-        check_reachable(address)
+        check_reachable(address, setting)
         kwargs["address"] = address
     else:
         # "local": a new Ray, even where `ray start` left a cluster that ray.init would join.
@@ -99,7 +108,7 @@ def connect(section: RaySection, num_cpus: int | None = None) -> tuple[Any, bool
         hint = ("" if os.environ.get("RAY_AUTH_MODE") else
                 "; a cluster started with `ray start` checks a token: set RAY_AUTH_MODE=token "
                 "and give this machine its ~/.ray/auth_token")
-        raise ConfigError(f"ray.address: cannot join the cluster at {address!r} "
+        raise ConfigError(f"{setting}: cannot join the cluster at {address!r} "
                           f"({err}){hint}") from None
     return ray, True
 
@@ -111,34 +120,42 @@ _HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 
 _SETTINGS_FRAME = 4
 
 
-def _host_port(target: str, address: str, name: str) -> tuple[str, int]:
-    """(host, port) of HOST:PORT, [IPv6]:PORT included; a ConfigError naming `name`."""
+def _host_port(target: str, address: str, setting: str) -> tuple[str, int]:
+    """(host, port) of HOST:PORT, [IPv6]:PORT included; a ConfigError naming `setting`."""
     host, sep, port = target.rpartition(":")
     if host.startswith("[") and host.endswith("]"):
         host = host[1:-1]
     if not sep or not host or not port.isdigit() or not 1 <= int(port) <= 65535:
-        raise ConfigError(f"{name}: expected 'auto', HOST:PORT (a port in 1..65535) or "
-                          f"ray://HOST:PORT, got {address!r}")
+        raise ConfigError(f"{setting}: expected 'auto' or HOST:PORT (the head's GCS address, "
+                          f"a port in 1..65535), got {address!r:.200}")
     return host, int(port)
 
 
-def check_reachable(address: str, timeout_s: float = 5.0, name: str | None = None) -> None:
-    """Fail fast, in one line naming `name` (default: `ray.address`, or `RAY_ADDRESS` where
-    the address is that variable's), where no Ray head answers at HOST:PORT (or no Ray Client
-    server at ray://HOST:PORT): nothing listens, or something that is not a gRPC server (a Ray
-    head's GCS and the Ray Client server speak gRPC). Any other scheme (the dashboard's
-    http://) is refused: Ray would retry it for minutes, or fail in a text of its own."""
-    if name is None:
-        name = "RAY_ADDRESS" if os.environ.get("RAY_ADDRESS") == address else "ray.address"
+def check_reachable(address: str, setting: str | None = None, timeout_s: float = 5.0,
+                    name: str | None = None) -> None:
+    """Fail fast, in one line naming `setting` (where the address came from; default
+    `ray.address`, or `RAY_ADDRESS` where the address is that variable's), where no Ray head
+    answers at HOST:PORT ([IPv6]:PORT too): nothing listens, or something that is not a gRPC
+    server (a Ray head's GCS speaks gRPC). A URL is refused as it is: `http(s)://` is a
+    dashboard's address (for `ray job submit`), `ray://` a Ray Client server's, and the driver
+    of a run must join the GCS itself (it reads Ray's own reference table and the actors' node
+    ids)."""
+    setting = setting or name or (
+        "RAY_ADDRESS" if os.environ.get("RAY_ADDRESS") == address else "ray.address")
     if address in ("auto", "local"):
         return
-    scheme, sep, rest = address.partition("://")
-    if sep and scheme != "ray":
-        raise ConfigError(f"{name}: {address!r} is not a Ray address ({scheme}:// is the "
-                          f"dashboard's, for `ray job submit`); give 'auto', the head's "
-                          f"HOST:PORT (ray start --head prints it) or ray://HOST:PORT")
-    host, port = _host_port(rest if sep else address, address, name)
-    server = "Ray Client server" if sep else "Ray head"
+    scheme, sep, _ = address.partition("://")
+    if sep:
+        scheme = scheme.lower()
+        what = ("a dashboard's (HTTP) address, for `ray job submit`" if scheme in
+                ("http", "https") else
+                "a Ray Client address (the driver must run on a node of the cluster: "
+                "ray exec, ray job submit)" if scheme == "ray" else
+                f"a URL ({scheme}://)")
+        raise ConfigError(f"{setting}: {address!r:.200} is {what}; a run joins the head's GCS "
+                          f"address HOST:PORT (ray start --head prints it; port 6379 by "
+                          f"default) or 'auto'")
+    host, port = _host_port(address, address, setting)
     try:
         with socket.create_connection((host, port), timeout=timeout_s) as sock:
             sock.sendall(_HTTP2_PREFACE)
@@ -150,14 +167,12 @@ def check_reachable(address: str, timeout_s: float = 5.0, name: str | None = Non
                 answer += chunk
     except OSError as err:
         if not isinstance(err, TimeoutError) and not isinstance(err, socket.timeout):
-            start = (f"ray start --head --port={port}" if not sep else
-                     f"ray start --head --ray-client-server-port={port}")
-            raise ConfigError(f"{name}: no {server} answers at {address} "
-                              f"({err.strerror or err}); start one there ({start}) or give "
-                              f"another address") from None
+            raise ConfigError(f"{setting}: no Ray head answers at {address} "
+                              f"({err.strerror or err}); start one there (ray start --head "
+                              f"--port={port}) or give another address") from None
         answer = b""
     if len(answer) < 9 or answer[3] != _SETTINGS_FRAME:
-        raise ConfigError(f"{name}: {address} is not a {server} (something listens there "
+        raise ConfigError(f"{setting}: {address} is not a Ray head (something listens there "
                           f"but does not speak Ray's gRPC); give the head's GCS address "
                           f"(ray start --head prints it)") from None
 
@@ -424,16 +439,26 @@ def check_resources(ray: Any, config: TrainConfig, gpus: float) -> None:
 
 def wait_until_ready(ray: Any, workers: Workers, stream: TextIO,
                      report_every_s: float = 30.0) -> None:
-    """Wait for every actor's constructor (errors raise here). On a cluster that is short of
-    resources actors stay pending (an autoscaler may yet add nodes): say which, periodically."""
-    pending = {a.ready.remote(): name for a, name in zip(workers.all(), workers.names(),
-                                                          strict=True)}
+    """Wait for every actor's constructor (errors raise here; an actor lost meanwhile, to the
+    memory monitor or with its node, is a RunStopped naming it: `lost` is "learner" for any
+    member of a learner group). On a cluster that is short of resources actors stay pending
+    (an autoscaler may yet add nodes): say which, periodically."""
+    members = workers.learner.members if isinstance(workers.learner, LearnerGroup) else []
+    actors = [*workers.all(), *members[1:]]
+    names = [*workers.names(), *(f"learner-{i}" for i in range(1, len(members)))]
+    pending = {a.ready.remote(): name for a, name in zip(actors, names, strict=True)}
     t0 = time.perf_counter()
     while pending:
         ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=report_every_s)
         for ref in ready:
-            ray.get(ref)
-            pending.pop(ref)
+            name = pending.pop(ref)
+            try:
+                ray.get(ref)
+            except Exception as err:
+                if not is_lost(ray, err):
+                    raise
+                role = "learner" if name.startswith("learner") else name
+                raise RunStopped(f"{name} died ({death_cause(err)})", lost=role) from err
         if pending:
             resources = ray.available_resources()
             stream.write(f"ray: waited {time.perf_counter() - t0:.0f} s for "

@@ -1,9 +1,13 @@
 """Resume from the newest intact step of a run folder, and report the integrity of all of them.
 
 A step can be resumed when its orbax checkpoint restores and, for a UED run, its level snapshot
-reads back: `state-<step>.json` parses, and `buffer-<step>.msgpack`, `learnable-<step>.msgpack`
-and `sfl-window-<step>.msgpack` (where they exist) pass the level-buffer format's checks (magic,
-version, SHA-256, every length, dtype and shape).
+reads back: `state-<step>.json` parses, and `buffer-<step>.msgpack`, `learnable-<step>.msgpack`,
+`sfl-window-<step>.msgpack` and `parents-<step>.msgpack` (where they exist) pass the
+level-buffer format's checks (magic, version, SHA-256, every length, dtype and shape), and the
+levels its curriculum state names as the next step's parents (ACCEL after a replay step) are in
+the parents file, one per id, or, in a snapshot without one, in its buffer. A snapshot whose
+buffer no longer holds them (written by an earlier version) resumes without that mutate step:
+`tabx runs check` says so beside the step.
 The checkpoint of a step records the SHA-256 of its snapshot's files: one edited since is
 damaged too. `restore_intact` tries the steps newest first, says in one line what is wrong with
 each step it passes over, and moves the files of every step newer than the one it resumes from
@@ -39,6 +43,7 @@ class StepCheck:
     step: int
     checkpoint: str | None  # None: restores
     snapshot: str | None  # None: reads back (or the run keeps none)
+    note: str | None = None  # what a resume from it has to change to go on
     checked: bool = True  # the checkpoint's arrays compared with digests recorded at saving
 
     @property
@@ -91,7 +96,7 @@ def snapshot_problem(levels_dir: Path, step: int, needs_buffer: bool,
     if problem is not None:
         return f"{state}: {problem}"
     for name, required in (("buffer", needs_buffer), ("learnable", False),
-                           ("sfl-window", False)):
+                           ("sfl-window", False), ("parents", False)):
         path = levels_dir / f"{name}-{step}.msgpack"
         kind = not_a_file(path)
         if kind == "missing":
@@ -130,6 +135,10 @@ def restore_intact(run_dir: Path, checkpoints: Checkpoints, template: Any, *,
     steps = checkpoints.all()
     if not steps:
         # Killed before its first checkpoint (perhaps after that step's snapshot): start over.
+        if stream is not None:
+            stream.write(f"resume: {run_dir} has no checkpoint yet: the run starts again from "
+                         f"step 0\n")
+            stream.flush()
         set_aside(run_dir, 0, stream)
         return None
     levels_dir = run_dir / LEVELS_DIR
@@ -190,24 +199,68 @@ def set_aside(run_dir: Path, step: int, stream: TextIO | None) -> Path | None:
     return target
 
 
+def parents_check(levels_dir: Path, step: int, config: TrainConfig
+                  ) -> tuple[str | None, str | None]:
+    """(problem, note) of the levels the snapshot of `step` names as the next step's parents
+    (the curriculum's `pending_parents`): a problem where the parents file does not match the
+    ids, a note where neither it nor the buffer holds them (a resume drops that step)."""
+    from ued.registry import curriculum_class
+
+    curriculum = curriculum_class(config.ued.method)  # its class: nothing is built
+    try:
+        ids = curriculum.pending_parents_of(json.loads(
+            (levels_dir / f"state-{step}.json").read_text())["curriculum"])
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None, None  # the state's own problems are `snapshot_problem`'s
+    if not ids:
+        return None, None
+    path = levels_dir / f"parents-{step}.msgpack"
+    try:
+        if path.is_file():
+            count = len(LevelBuffer.load(path))
+            if count != len(ids):
+                return (f"{path}: {count} levels, but the curriculum state names {len(ids)} "
+                        f"parents"), None
+            return None, None
+        buffer = levels_dir / f"buffer-{step}.msgpack"
+        held = set(LevelBuffer.load(buffer).ids.tolist()) if buffer.is_file() else set()
+    except (BufferFileError, OSError) as err:
+        return str(err).splitlines()[0], None
+    missing = sorted(set(ids) - held)
+    if not missing:
+        return None, None
+    return None, (f"its buffer no longer holds the replayed levels {missing[:8]} that "
+                  f"{curriculum.name}'s next step mutates, and it keeps no parents file: a "
+                  f"resume drops that mutate step")
+
+
 def check_run(run_dir: Path, checkpoints: Checkpoints, template: Any = None, *,
               snapshots: bool, needs_buffer: bool, key_template: jax.Array | None = None,
-              steps: list[int] | None = None) -> list[StepCheck]:
+              steps: list[int] | None = None, config: TrainConfig | None = None
+              ) -> list[StepCheck]:
     """Every checkpointed step of a run folder (or those of `steps`), oldest first, checked as
     resume would; `template` None reads each checkpoint as it was saved
-    (`Checkpoints.restore_saved`)."""
+    (`Checkpoints.restore_saved`). With `config`, a snapshot's pending parents are checked
+    too (`parents_check`)."""
     levels_dir = run_dir / LEVELS_DIR
-    return [StepCheck(step, checkpoint_problem(checkpoints, template, step, key_template)[0],
-                      snapshot_problem(levels_dir, step, needs_buffer, checkpoints)
-                      if snapshots else None, checkpoints.has_digests(step))
-            for step in (checkpoints.all() if steps is None else steps)]
+    checks = []
+    for step in (checkpoints.all() if steps is None else steps):
+        snapshot = (snapshot_problem(levels_dir, step, needs_buffer, checkpoints)
+                    if snapshots else None)
+        note = None
+        if snapshots and snapshot is None and config is not None:
+            snapshot, note = parents_check(levels_dir, step, config)
+        checks.append(StepCheck(step, checkpoint_problem(checkpoints, template, step,
+                                                         key_template)[0], snapshot, note,
+                                checkpoints.has_digests(step)))
+    return checks
 
 
 def _keeps_buffer(config: TrainConfig) -> bool:
     """Whether the run's level snapshots hold a level buffer (its curriculum's registry entry)."""
-    from ued.registry import curriculum_entry
+    from ued.registry import curriculum_class
 
-    return config.ued.enabled and curriculum_entry(config.ued.method).uses_buffer
+    return config.ued.enabled and curriculum_class(config.ued.method).uses_buffer
 
 
 def check_run_folder(run_dir: str | Path) -> list[StepCheck]:
@@ -220,7 +273,7 @@ def check_run_folder(run_dir: str | Path) -> list[StepCheck]:
     config = read_run_config(run_dir)
     with open_checkpoints(run_dir, config, create=False) as checkpoints:
         return check_run(run_dir, checkpoints, snapshots=config.ued.enabled,
-                         needs_buffer=_keeps_buffer(config))
+                         needs_buffer=_keeps_buffer(config), config=config)
 
 
 def step_intact(run_dir: Path, checkpoints: Checkpoints, config: TrainConfig, step: int
@@ -228,7 +281,31 @@ def step_intact(run_dir: Path, checkpoints: Checkpoints, config: TrainConfig, st
     """Whether step `step` of a run folder is intact as `tabx runs check` sees it (its
     checkpoint read as saved, and a UED run's level snapshot)."""
     return check_run(run_dir, checkpoints, snapshots=config.ued.enabled,
-                     needs_buffer=_keeps_buffer(config), steps=[step])[0].intact
+                     needs_buffer=_keeps_buffer(config), steps=[step], config=config)[0].intact
+
+
+def resume_point(run_dir: Path, config: TrainConfig) -> tuple[int | None, int]:
+    """(the step `tabx train --resume` continues from: the newest intact, as `tabx runs
+    check` sees it, None where none is; the number of checkpoints)."""
+    from ued.run_folder import open_checkpoints
+
+    with open_checkpoints(run_dir, config, create=False) as checkpoints:
+        steps = checkpoints.all()
+        for step in reversed(steps):
+            if step_intact(run_dir, checkpoints, config, step):
+                return step, len(steps)
+    return None, len(steps)
+
+
+def what_resume_does(run_dir: Path, config: TrainConfig) -> str:
+    """What `tabx train --resume RUN_DIR` will do, in words (`resume_point`)."""
+    step, saved = resume_point(run_dir, config)
+    if step is not None:
+        return f"tabx train --resume {run_dir} continues it from its checkpoint at step {step}"
+    if saved:
+        return (f"no checkpoint of it is intact (tabx runs check {run_dir}): tabx train "
+                f"--resume {run_dir} cannot continue it")
+    return f"no checkpoint yet: tabx train --resume {run_dir} starts it again from step 0"
 
 
 def format_checks(run_dir: str | Path, checks: list[StepCheck]) -> str:
@@ -241,7 +318,7 @@ def format_checks(run_dir: str | Path, checks: list[StepCheck]) -> str:
             lines.append(f"  step {check.step}: intact" + (
                 "" if check.checked else " as far as it was checked: the checkpoint records "
                 "no digests (its _CHECKPOINT_METADATA is missing or unreadable), so its array "
-                "values are unchecked"))
+                "values are unchecked") + (f" ({check.note})" if check.note else ""))
             continue
         parts = [f"{what}: {problem}" for what, problem in (("checkpoint", check.checkpoint),
                                                             ("snapshot", check.snapshot))
@@ -254,4 +331,5 @@ def format_checks(run_dir: str | Path, checks: list[StepCheck]) -> str:
 
 
 __all__ = ["SET_ASIDE_DIR", "StepCheck", "check_run", "check_run_folder", "format_checks",
-           "restore_intact", "set_aside", "state_problem", "step_intact"]
+           "parents_check", "restore_intact", "resume_point", "set_aside", "state_problem",
+           "step_intact", "what_resume_does"]

@@ -37,7 +37,7 @@ import numpy as np
 
 from tabx.errors import UserError
 from ued.config import TrainConfig
-from ued.progress import Progress, ThroughputClock, log_update
+from ued.progress import Played, Progress, ThroughputClock, log_update
 from ued.run_folder import EVENTS_DIR, checkpoint_metadata, open_checkpoints
 from ued.tensorboard import SummaryWriter
 from workers.driver import Callback
@@ -111,6 +111,7 @@ class Report:
     total: int  # steps of the whole run
     env_steps: int  # env steps of one step (all seeds)
     output: Output
+    played: Played | None = None  # the clock's running totals: the progress line's window
 
     def show(self, metrics: dict[str, Any], train_state: Any, *, extra: str = "",
              writer: bool = True, callback: bool = True) -> None:
@@ -120,7 +121,8 @@ class Report:
         out = self.output
         log_update(out.writer if writer else None, out.bar, out.callback if callback else None,
                    self.done, train_state, metrics, self.env_steps, self.rate, self.total,
-                   self.last, extra=extra, eta_steps_per_s=self.eta_steps_per_s)
+                   self.last, extra=extra, eta_steps_per_s=self.eta_steps_per_s,
+                   played=self.played)
 
 
 class Runner(abc.ABC):
@@ -168,8 +170,9 @@ class Runner(abc.ABC):
         """A train state shaped as the checkpoints' (to restore into)."""
 
     @abc.abstractmethod
-    def restore(self, run_dir: Path, train_state: Any, start: int) -> None:
-        """Continue from the checkpoint of step `start`, whose train state is `train_state`."""
+    def restore(self, run_dir: Path, train_state: Any, start: int) -> str | None:
+        """Continue from the checkpoint of step `start`, whose train state is `train_state`;
+        returns a note on what had to change to go on (shown to the user), or None."""
 
     def begin(self, start: int) -> None:
         """Before the first step of this call, restored or not (`start`: the first step)."""
@@ -252,7 +255,10 @@ def train_loop(runner: Runner, run_dir: Path, *, resume: bool, max_updates: int 
     if restored is not None:
         checkpoints.reload()
         train_state, key, start = restored
-        runner.restore(run_dir, train_state, start)
+        note = runner.restore(run_dir, train_state, start)
+        if note is not None and stream is not None:
+            stream.write(f"resume: {note}\n")
+            stream.flush()
     runner.begin(start)
     total = config.learner.num_updates
     stop = total if max_updates is None else min(total, start + max_updates)
@@ -285,7 +291,7 @@ def train_loop(runner: Runner, run_dir: Path, *, resume: bool, max_updates: int 
                 timing, rate = clock.read(done, trained if runner.explores else None,
                                           runner.background_steps())
                 runner.log(metrics, Report(done, last, timing, rate, clock.eta_steps_per_s,
-                                           total, runner.env_steps, output))
+                                           total, runner.env_steps, output, clock.played))
             every = runner.eval_every
             runner.evaluate(done, bool(every) and (done % every == 0 or last), output)
             if checkpoint_due or interrupt.requested:

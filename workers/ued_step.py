@@ -6,29 +6,36 @@ level service for, what to play, what to commit.
     NEW     levels = service.fresh()      -> LearnerWorker.train (PLR, DR) or Explorer (Robust PLR,
                                              ACCEL) -> scores -> service.insert
     REPLAY  replay = service.replay()     -> LearnerWorker.train -> scores -> service.update
-    MUTATE  children = mutate(last replay)-> Explorer -> scores -> service.insert (MUTATION)
+    MUTATE  children = service.mutate(the last replay batch's levels, as drawn)
+                                          -> Explorer -> scores -> service.insert (MUTATION)
     SFL     [every sfl_update_freq steps: score sfl_num_batches x sfl_batch_size fresh levels
              by learnability with the Explorer, keep the top sfl_top_k]
             levels = fresh half + learnable half -> LearnerWorker.train
 
 This is sequential PLR / Robust PLR / ACCEL exactly as the papers (and JaxUED) define them.
-`UEDRun.step` takes every decision. Where and when the parts run is its `Schedule`: by default
-all of it here and now (the local driver, and the Ray driver's deterministic mode, whose
-workers are stand-ins that call Ray actors); the Ray driver's asynchronous schedule hands the
-steps that only score levels to Explorers and commits their results when they arrive. Its
+`UEDRun.step` runs them; every decision is the curriculum's, through its hooks
+(`ued.curricula.base`): which branch, whether it learns, what new levels to ask for, how the
+buffer draws replays and whether new levels it trains on are scored. Where and when the parts
+run is its `Schedule`: by default all of it here and now (the local driver, and the Ray
+driver's deterministic mode, whose workers are stand-ins that call Ray actors); the Ray
+driver's asynchronous schedule hands the steps that only score levels to Explorers and commits
+their results when they arrive. Its
 continuous schedule (`workers.continuous`) departs from these steps for Robust PLR, ACCEL and
 SFL: Explorers score without pause (SFL: the learnable set is refreshed as scored batches come
 in, not every sfl_update_freq steps).
 
-A step that scores new or mutated levels asks the level service for them with a
-`LevelRequest`: the service call that makes them, and the source and parents the buffer files
-them under when they are committed.
+A step that scores new or mutated levels asks the level service for them with the
+curriculum's `LevelRequest`: the service call that makes them, and the source and parents the
+buffer files them under when they are committed. ACCEL's children are made from the replayed levels
+themselves, never looked up by id: on the asynchronous schedule Explorer results committed
+between the replay step and the mutate step may evict a parent from the buffer. For the same
+reason a snapshot taken between the two steps holds the parents as levels
+(`parents-<step>.msgpack`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol, TextIO, TypeVar
 
@@ -36,15 +43,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from level_buffer import Source
+from level_buffer import Replay
+from level_buffer.fileformat import BufferFileError
 from tabx import constants as C
 from tabx.params import EnvParams, stack_levels
 from ued.config import ConfigError, TrainConfig
-from ued.curricula import SFL, Branch, Curriculum
+from ued.curricula import Branch, Curriculum, LevelRequest
 from ued.experiment import learner_for, scenario_levels
 from ued.learners.ppo import PPOLearner
 from ued.levels import LevelGenerator
-from ued.registry import curriculum_entry, curriculum_for
+from ued.registry import curriculum_for
 from ued.run_folder import LEVELS_DIR
 from ued.suites import load_suite
 from ued.tensorboard import SummaryWriter
@@ -68,12 +76,13 @@ def generator_for(config: TrainConfig, learner: PPOLearner) -> LevelGenerator:
 
 
 def level_service_for(config: TrainConfig, learner: PPOLearner) -> LevelService:
-    """The LevelService of a UED config, with `generator_for`'s generator."""
+    """The LevelService of a UED config, with `generator_for`'s generator and the level buffer
+    its curriculum asks for (`Curriculum.buffer_config`; none where it keeps none)."""
     generator = generator_for(config, learner)
     ued = config.ued
     template = jax.tree.map(lambda x: np.asarray(x)[0], generator.base_levels)
     return LevelService(generator, template, ued, seed=config.seed,
-                        use_buffer=curriculum_entry(ued.method).uses_buffer)
+                        curriculum=curriculum_for(ued))
 
 
 def evaluators_for(config: TrainConfig, learner: PPOLearner) -> list[Evaluator]:
@@ -90,21 +99,6 @@ def local_workers(config: TrainConfig) -> tuple[PPOLearner, LevelService, Explor
     learner = learner_for(config, scenario_levels(config)[0])
     return (learner, level_service_for(config, learner), Explorer(learner, config.ued.score),
             evaluators_for(config, learner))
-
-
-@dataclass(frozen=True, eq=False)
-class LevelRequest:
-    """New levels a step asks the level service for: the call that makes them (`method` of
-    the service with `args`), and how the buffer files them when they are committed."""
-
-    method: str  # "fresh" (NEW) or "mutate_ids" (MUTATE)
-    args: tuple
-    source: Source
-    parent_ids: np.ndarray | int = -1  # MUTATE: the parents' buffer ids; -1: none
-
-    def make(self, service: Any) -> EnvParams:
-        """The levels, made by `service` (a LevelService or a stand-in with its methods)."""
-        return getattr(service, self.method)(*self.args)
 
 
 class Schedule(Protocol):
@@ -132,6 +126,7 @@ class UEDRun:
         self.config = config
         ued = config.ued
         self.curriculum: Curriculum = curriculum_for(ued)
+        self.score = self.curriculum.score_name(ued)  # the score levels are ranked by
         self.service, self.explorer, self.evaluators = service, explorer, list(evaluators)
         self.sfl_scoring_steps = 0
         self.branch_counts = {b: 0 for b in Branch}  # steps of each kind, over the whole run
@@ -157,15 +152,18 @@ class UEDRun:
         curriculum = self.curriculum
         branch = self.next_branch()
         learns = curriculum.learns(branch)
-        replay_ids = None
+        replay = None
         if learns:
-            metrics, levels, replay_ids = schedule.learn(
+            metrics, levels, replay = schedule.learn(
                 step, lambda: self.learning_step(learner, branch, step, keys))
         else:
             metrics, levels = schedule.explore(learner, step,
                                                self.level_request(branch, k_levels, k_edit),
                                                k_roll)
-        curriculum.observe(branch, replay_ids)
+        if replay is None:
+            curriculum.observe(branch)
+        else:
+            curriculum.observe(branch, replay.ids, replay.levels)
         if metrics is not None:
             metrics = self.step_metrics(metrics, branch, learns, learner.version)
         return branch, metrics, levels
@@ -185,13 +183,9 @@ class UEDRun:
 
     def level_request(self, branch: Branch, k_levels: jax.Array, k_edit: jax.Array
                       ) -> LevelRequest:
-        """Fresh levels (NEW) or ACCEL children of the last replay batch (MUTATE)."""
-        if branch == Branch.NEW:
-            return LevelRequest("fresh", (k_levels, self.config.learner.num_envs),
-                                Source.RANDOM)
-        assert branch == Branch.MUTATE, branch
-        parent_ids = np.asarray(self.curriculum.last_replay_ids, np.int64)
-        return LevelRequest("mutate_ids", (k_edit, parent_ids), Source.MUTATION, parent_ids)
+        """The new levels of a NEW or MUTATE step, as the curriculum asks for them."""
+        return self.curriculum.level_request(branch, k_levels, k_edit,
+                                             self.config.learner.num_envs)
 
     def commit(self, request: LevelRequest, levels: Any, scores: Any, best: Any,
                version: int) -> None:
@@ -212,15 +206,16 @@ class UEDRun:
         version = learner.version
         levels = request.make(self.service)
         metrics, scores, best = self.explorer.score_levels(learner.params, levels, key,
-                                                           self.config.ued.score)
+                                                           self.score)
         self.commit(request, levels, scores, best, version)
         return metrics, levels
 
     def learning_step(self, learner: LearnerWorker, branch: Branch, step: int, keys: jax.Array
-                      ) -> tuple[dict[str, Any], EnvParams, np.ndarray | None]:
-        """A step that trains the policy: (metrics, levels played, replayed ids or None)."""
+                      ) -> tuple[dict[str, Any], EnvParams, Replay | None]:
+        """A step that trains the policy: (metrics, levels played, the replay batch or
+        None)."""
         k_levels, k_roll, k_edit = keys
-        n, score = self.config.learner.num_envs, self.config.ued.score
+        n, score = self.config.learner.num_envs, self.score
         service = self.service
         version = learner.version  # the policy that plays (and so scores) this step's levels
         if branch == Branch.REPLAY:
@@ -229,9 +224,8 @@ class UEDRun:
             metrics, scores, best = learner.train_scored(levels, k_roll, score,
                                                          replay.max_returns)
             service.update(replay.ids, scores, best, version)
-            return metrics, levels, replay.ids
+            return metrics, levels, replay
         if branch == Branch.SFL:
-            assert isinstance(self.curriculum, SFL)
             if self.curriculum.needs_refresh(step) or not service.has_learnable():
                 self.refresh_learnable(learner, k_edit)
             levels = self.sfl_batch(k_levels, n)
@@ -240,7 +234,7 @@ class UEDRun:
         # NEW (DR; PLR's exploratory gradient updates) or MUTATE with gradient updates.
         request = self.level_request(branch, k_levels, k_edit)
         levels = request.make(service)
-        if self.curriculum.uses_buffer:
+        if self.curriculum.scores_new_levels:
             metrics, scores, best = learner.train_scored(levels, k_roll, score)
             self.commit(request, levels, scores, best, version)
         else:
@@ -324,18 +318,50 @@ class UEDRun:
         return int(state["version"])
 
     def save(self, run_dir: Path, done: int, learner: LearnerWorker) -> None:
-        """The level snapshot of step `done` in `RUN_DIR/levels/`. Written before the
-        checkpoint of the same step: a checkpoint without one cannot be resumed."""
+        """The level snapshot of step `done` in `RUN_DIR/levels/`, with the levels the next
+        step edits (ACCEL after a replay step). Written before the checkpoint of the same
+        step: a checkpoint without one cannot be resumed."""
+        curriculum = self.curriculum
+        parents = curriculum.last_replay_levels if curriculum.pending_parents() else None
         self.service.save(str(run_dir / LEVELS_DIR), done, self.state(learner),
-                          keep=self.config.run.keep_checkpoints)
+                          keep=self.config.run.keep_checkpoints, parents=parents)
 
-    def resume(self, run_dir: Path, start: int) -> int:
-        """Continue from the level snapshot of step `start`; the policy version it was taken
-        at. ConfigError when it is missing or does not fit this run."""
+    def resume(self, run_dir: Path, start: int) -> tuple[int, str | None]:
+        """Continue from the level snapshot of step `start`: (the policy version it was taken
+        at, a note on what had to change to go on, or None). ConfigError when it is missing or
+        does not fit this run."""
+        folder = str(run_dir / LEVELS_DIR)
         try:
-            return self.load_state(self.service.load(str(run_dir / LEVELS_DIR), start))
-        except (FileNotFoundError, ConfigError) as err:
+            version = self.load_state(self.service.load(folder, start))
+            return version, self.restore_parents(folder, start)
+        except (FileNotFoundError, ConfigError, BufferFileError) as err:
             raise ConfigError(f"{run_dir}: cannot resume from step {start}: {err}") from None
+
+    def restore_parents(self, folder: str, start: int) -> str | None:
+        """The levels the next step edits, from the snapshot's parents file or, in a snapshot
+        that has none, from its buffer. When the buffer no longer holds them (a snapshot that
+        an earlier version took between an ACCEL replay step and its mutate step) the mutate
+        step is dropped: the note says so."""
+        curriculum = self.curriculum
+        ids = curriculum.pending_parents()
+        if not ids:
+            return None
+        levels = self.service.load_parents(folder, start)
+        if levels is not None:
+            count = jax.tree.leaves(levels)[0].shape[0]
+            if count != len(ids):
+                raise ConfigError(f"{folder}/parents-{start}.msgpack: {count} levels, but the "
+                                  f"curriculum state names {len(ids)} parents")
+        else:
+            levels = self.service.stored_levels(ids)
+        if levels is None:
+            curriculum.drop_pending()
+            return (f"the level snapshot of step {start} names replayed levels (ids "
+                    f"{sorted(set(ids))[:8]}) that its buffer no longer holds and keeps no "
+                    f"parents file: {curriculum.name}'s mutation step after that replay is "
+                    f"dropped and the run goes on with the next step's own decision")
+        curriculum.last_replay_levels = levels
+        return None
 
 
 def level_summary(levels: EnvParams) -> dict[str, float]:
@@ -366,5 +392,5 @@ def branch_text(counts: dict[Branch, int], buffer_size: int | None) -> str:
     return ", ".join(parts)
 
 
-__all__ = ["LevelRequest", "Schedule", "UEDRun", "branch_text", "evaluators_for",
+__all__ = ["Schedule", "UEDRun", "branch_text", "evaluators_for",
            "generator_for", "level_service_for", "level_summary", "local_workers"]
