@@ -135,9 +135,7 @@ def run_summary_lines(run_dir: Path) -> str:
         scalars = read_scalars(run_dir / EVENTS_DIR)
     except Exception:  # noqa: BLE001 (no events/, a multi-seed run, unreadable files)
         scalars = {}
-    if scalars.get("episode/win_rate"):
-        step, value = scalars["episode/win_rate"][-1]
-        lines.append(f"  win rate (training, at env step {step}): {value:.3f}")
+    lines += _training_win_rate(scalars)
     for tag in sorted(t for t in scalars if t.startswith("eval/") and
                       t.endswith("/mean_win_rate")):
         step, value = scalars[tag][-1]
@@ -150,6 +148,32 @@ def run_summary_lines(run_dir: Path) -> str:
         lines.append(f"  checkpoints: {folder} (steps {', '.join(map(str, steps))}); "
                      f"evaluate with tabx eval {run_dir}")
     return "\n".join(lines)
+
+
+def _training_win_rate(scalars: dict[str, list[tuple[int, float]]]) -> list[str]:
+    """The training win rate of the last logged update, with the episodes it is over (an
+    update whose rollouts ended no episode logs none: `learner.num_steps` below
+    `env.max_steps` ends one only by an elimination)."""
+    counts = dict(scalars.get("episode/count", []))
+    rates = scalars.get("episode/win_rate", [])
+    if not counts and not rates:
+        return []
+    last = max(counts) if counts else rates[-1][0]
+    if rates and rates[-1][0] == last:
+        step, value = rates[-1]
+        return [f"  win rate (training, at env step {step}): {value:.3f}"
+                + (f" over {_episodes(counts[step])}" if step in counts else "")]
+    line = (f"  win rate (training): none; no episode ended within the rollouts of the last "
+            f"logged update (env step {last})")
+    if rates:
+        step, value = rates[-1]
+        line += (f"; the last that had one, at env step {step}: {value:.3f}"
+                 + (f" over {_episodes(counts[step])}" if step in counts else ""))
+    return [line]
+
+
+def _episodes(count: float) -> str:
+    return f"{count:.0f} episode{'' if count == 1 else 's'}"
 
 
 def cmd_eval(args: argparse.Namespace) -> int:

@@ -820,8 +820,10 @@ TRAIN_ARGUMENTS = {
                           r"ray\.address: 'http://127\.0\.0\.1:\d+' is a dashboard's"),
     "--address ray:// closed": (["--ray", "--address", "ray://127.0.0.1:{port}"],
                                 r"ray\.address: 'ray://127\.0\.0\.1:\d+' is a Ray Client address"),
-    "--address [::1] closed": (["--ray", "--address", "[::1]:{port}"],
-                               r"ray\.address: no Ray head answers at \[::1\]:\d+"),
+    # An IPv6 host in brackets is reached (not looked up as the name "[::1]"): what listens
+    # there is no Ray head.
+    "--address [::1] of another server": (["--ray", "--address", "[::1]:{v6port}"],
+                                          r"ray\.address: \[::1\]:\d+ is not a Ray head"),
     "ray.max_inflight 1e9": (["--ray", "ray.max_inflight=1000000000"],
                              r"ray\.max_inflight: must be in \[1, 64\]"),
     "ray.placement_timeout_s 1e308": (["--ray", "ray.placement_timeout_s=1e308"],
@@ -840,15 +842,35 @@ TRAIN_ARGUMENTS = {
 @pytest.mark.parametrize("case", list(TRAIN_ARGUMENTS))
 def test_train_refuses_what_it_would_drop_or_fail_on_late(case, config_text, tmp_path, capsys):
     """One line before a run folder exists (the address checks are immediate)."""
+    import contextlib
+    import socket
+    import threading
+
     path = tmp_path / "ok.yaml"
     path.write_text(config_text)
     args, pattern = TRAIN_ARGUMENTS[case]
-    port = free_port()
-    argv = ["train", str(path), *(a.format(port=port) for a in args),
-            f"run.dir={tmp_path / 'runs'}", "--quiet", "--max-updates", "1"]
-    before = tree(tmp_path)
-    assert_one_error(*run_cli(capsys, argv), argv, "", pattern)
-    assert tree(tmp_path) == before
+    with socket.socket(socket.AF_INET6) as server:  # a web server, as far as Ray can tell
+        try:
+            server.bind(("::1", 0))
+        except OSError:
+            pytest.skip("no IPv6 loopback here")
+        server.listen()
+
+        def refuse() -> None:
+            with contextlib.suppress(OSError):  # the server closed
+                while True:
+                    connection = server.accept()[0]
+                    with connection:
+                        connection.recv(4096)
+                        connection.sendall(b"HTTP/1.1 400 Bad Request\r\n\r\n")
+
+        threading.Thread(target=refuse, daemon=True).start()
+        ports = {"port": free_port(), "v6port": server.getsockname()[1]}
+        argv = ["train", str(path), *(a.format(**ports) for a in args),
+                f"run.dir={tmp_path / 'runs'}", "--quiet", "--max-updates", "1"]
+        before = tree(tmp_path)
+        assert_one_error(*run_cli(capsys, argv), argv, "", pattern)
+        assert tree(tmp_path) == before
 
 
 @pytest.mark.parametrize("option,value", [("--seconds", "inf"), ("--batch-s", "inf"),

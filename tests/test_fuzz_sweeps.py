@@ -50,7 +50,7 @@ SPECS = {
                     r"points\) is more than max_trials \(1,000\); .*max_trials: 100000000"),
     "max_trials not a count": ("grid: {seed: [0]}\nmax_trials: -1\n",
                                r"max_trials: expected an integer >= 1"),
-    "a trial name over 200 bytes": (f"grid: {{run.name: [{LONG}]}}\n",
+    "a trial name over 200 bytes": (f"grid: {{variant: {{{LONG}: {{seed: 1}}}}}}\n",
                                     r"grid: a trial's name: the folder name 'xxx.*is 260 "
                                     r"bytes; at most 200"),
     "a point name over 200 bytes": (f"points: [{{name: {LONG}, seed: 1}}]\n",
@@ -125,6 +125,32 @@ def test_a_sweep_folder_that_cannot_be_made_is_one_line(tmp_path, capsys):
     argv = ["sweep", str(path)]
     assert_one_error(*run_cli(capsys, argv), argv, "/proc/nope/sweep",
                      r"cannot make the sweep folder \(.*\); give another dir")
+
+
+def test_a_cluster_that_cannot_hold_a_trial_is_warned_about(tmp_path):
+    """On a cluster nodes may join (an autoscaler), so trials no node can hold are a warning,
+    not a refusal: a trial of 4 CPUs on nodes of 2, or 4 Explorers beside it on a cluster of
+    6 CPUs in all (a stand-in for Ray's node list)."""
+    import types
+
+    from workers.sweep import warn_unfit_cluster
+
+    path = write_spec(tmp_path, "base: base.yaml\ngrid: {seed: [0]}\n"
+                                "resources: {cpus: 4, explorers: 4}\n")
+    spec = read_sweep_spec(path)
+
+    def warned(*nodes: dict) -> str:
+        ray = types.SimpleNamespace(nodes=lambda: [{"Alive": True, "Resources": n}
+                                                   for n in nodes])
+        stream = io.StringIO()
+        warn_unfit_cluster(ray, spec, stream)
+        return stream.getvalue()
+
+    assert "no node of the cluster can hold a trial (4 CPU on one node)" in warned(
+        {"CPU": 2.0}, {"CPU": 2.0})
+    assert "a trial holds 8 CPU but the cluster has 6 CPU;" in warned(
+        {"CPU": 4.0}, {"CPU": 2.0})
+    assert warned({"CPU": 4.0}, {"CPU": 4.0}) == ""
 
 
 # --- a sweep folder of one finished trial ------------------------------------------------------

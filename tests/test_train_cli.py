@@ -238,6 +238,28 @@ def test_a_finished_run_prints_a_summary(tmp_path):
     assert run_summary_lines(tmp_path / "nothing").startswith("summary of")
 
 
+def test_the_summary_says_when_no_episode_ended(tmp_path):
+    """Rollouts shorter than an episode (`learner.num_steps` below `env.max_steps`) end one
+    only by an elimination: an update that ended none logs no win rate. The summary says so
+    rather than show an older update's rate as the run's (1.000 over one episode)."""
+    from tabx_ued.train_eval_commands import run_summary_lines
+    from ued.tensorboard import SummaryWriter
+
+    run = tmp_path / "run"
+    writer = SummaryWriter(run / "events")
+    writer.scalars({"episode/count": 1.0, "episode/win_rate": 1.0}, step=64)
+    writer.scalars({"episode/count": 0.0}, step=128)
+    writer.close()
+    text = run_summary_lines(run)
+    assert ("win rate (training): none; no episode ended within the rollouts of the last "
+            "logged update (env step 128); the last that had one, at env step 64: 1.000 over "
+            "1 episode") in text, text
+    writer = SummaryWriter(run / "events")
+    writer.scalars({"episode/count": 8.0, "episode/win_rate": 0.25}, step=192)
+    writer.close()
+    assert "win rate (training, at env step 192): 0.250 over 8 episodes" in run_summary_lines(run)
+
+
 def test_a_ray_run_resumed_without_ray_continues_on_the_local_driver(capsys, tmp_path):
     """`tabx train --resume RUN` of a run trained with `--ray`: the local driver continues it
     (Ray is not started, no `ray.json` is written), as `ray.enabled=false` says too; the run's

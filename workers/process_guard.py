@@ -45,7 +45,8 @@ Process = tuple[int, int]  # (pid, start time in clock ticks since boot)
 
 
 def process_table() -> dict[int, tuple[int, int]]:
-    """Every process: pid -> (parent pid, start time)."""
+    """Every running process (not the exited ones waiting for their parent, zombies): pid ->
+    (parent pid, start time)."""
     out = {}
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit():
@@ -55,7 +56,8 @@ def process_table() -> dict[int, tuple[int, int]]:
         except OSError:  # gone
             continue
         fields = stat[stat.rindex(")") + 2:].split()  # after the command name, which may hold ')'
-        out[int(entry.name)] = (int(fields[1]), int(fields[19]))
+        if fields[0] not in ("Z", "X"):
+            out[int(entry.name)] = (int(fields[1]), int(fields[19]))
     return out
 
 
@@ -162,14 +164,19 @@ def watch(guarded: int, token: str) -> None:
     closed the pipe, or is gone), then end them and the processes carrying `token`."""
     # Only what started after the watchdog: the command's processes from before (a test
     # session's own) are not the guard's.
-    since = process_table()[os.getpid()][1]
+    table = process_table()
+    since = table[os.getpid()][1]
+    guarded_start = table.get(guarded, (0, -1))[1]
     seen: set[Process] = set()
     with contextlib.suppress(OSError):
         while True:
             ready, _, _ = select.select([sys.stdin.buffer], [], [], POLL_S)
             if ready and not os.read(sys.stdin.fileno(), 4096):
                 break
-            seen |= descendants({guarded}, process_table())
+            table = process_table()
+            if table.get(guarded, (0, -2))[1] != guarded_start:
+                break  # gone (its id may already be another process's)
+            seen |= descendants({guarded}, table)
     ours = {(pid, start) for pid, start in seen | marked(token)
             if start >= since and pid != os.getpid()}
     end(ours)

@@ -103,7 +103,7 @@ def import_tune() -> Any:
 
 
 def _bundle_text(bundle: dict[str, float]) -> str:
-    return " and ".join(f"{v:g} {k}" for k, v in bundle.items())
+    return " and ".join(f"{v:g} {k}" for k, v in bundle.items() if v) or "nothing"
 
 
 def check_local_fit(spec: SweepSpec, num_cpus: int | None) -> None:
