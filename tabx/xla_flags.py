@@ -12,7 +12,7 @@ Importing `tabx` applies nothing; the `tabx` command (`tabx_ued.cli.main`), the 
    fusion, which is 1.5-2x slower for the (envs, units, units) reductions of this simulator
    (docs/benchmarks.md, "Simulator step"): we turn it off.
 2. One CPU device per usable core (`--xla_force_host_platform_device_count`), so that a
-   learner can split its envs over the cores as data-parallel shards (ued/learners/ppo.py
+   learner can split its envs over the cores as data-parallel shards (ued/learners/ppo/train.py
    `learner_devices`): an update is a long chain of small kernels that one device runs on
    about 1.25 cores, while two devices with half the envs each run side by side (IPPO on
    crossfire 1.3x faster on 2 cores, docs/learners.md, "Data parallel over devices").

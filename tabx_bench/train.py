@@ -114,14 +114,14 @@ def _run_train_bench(algorithm: str, scenario: str, opponent: str, num_envs: int
     from tabx.scenarios import config_for, load_named
     from ued.config import Q_LEARNER_SETTINGS, LearnerConfig, QLearningConfig
     from ued.learners import make_learner
-    from ued.registry import learner_entry
+    from ued.registry import learner_class
 
     level_scenario = load_named(scenario)
     env_config = config_for([level_scenario])
     levels = jax.tree.map(jnp.array, repeat_level(level_scenario.to_level(env_config), num_envs))
     ppo = LearnerConfig(num_envs=num_envs, num_steps=num_steps)
     q = None
-    if learner_entry(algorithm).settings == "qlearning":
+    if learner_class(algorithm).settings_type is QLearningConfig:
         # The paper's Q-learning settings, learning from the first update on (every timed
         # update samples and takes its gradient steps once the buffer holds a batch).
         ppo = dataclasses.replace(ppo, **Q_LEARNER_SETTINGS)
@@ -129,7 +129,8 @@ def _run_train_bench(algorithm: str, scenario: str, opponent: str, num_envs: int
                             buffer_size=max(QLearningConfig.buffer_size, num_envs))
     if matmul_dtype is not None:
         ppo = dataclasses.replace(ppo, matmul_dtype=matmul_dtype)
-    learner = make_learner(algorithm, env_config, ppo, "ally", opponent, cached=False, q=q)
+    learner = make_learner(algorithm, env_config, ppo, "ally", opponent, cached=False,
+                           settings=q)
     if variant == "reference-like":
         reference_like(learner)
     key = jax.random.key(0)
@@ -156,7 +157,7 @@ def _run_train_bench(algorithm: str, scenario: str, opponent: str, num_envs: int
     from tabx_bench.learner_group import param_bytes, per_update_reduction_s, reduction_s
 
     reduce_s = (per_update_reduction_s(ppo, *reduction_s(learner, state.params, num_envs))
-                if learner_entry(algorithm).devices else 0.0)
+                if learner_class(algorithm).devices else 0.0)
     return TrainBenchResult(algorithm, variant, scenario, opponent, num_envs, num_steps, first,
                             median, num_envs * num_steps / median, updates,
                             len(learner.learner_devices(num_envs)), ppo.matmul_dtype,
@@ -166,10 +167,10 @@ def _run_train_bench(algorithm: str, scenario: str, opponent: str, num_envs: int
 def bench_train(args: argparse.Namespace) -> int:
     from tabx.errors import UserError
     from tabx_bench.simulator import machine_summary, write_results
-    from ued.registry import learner_entry
+    from ued.registry import learner_class
 
     variant = "reference-like" if args.reference_like else "ours"
-    if args.reference_like and any(not learner_entry(a).ppo_settings for a in args.algorithms):
+    if args.reference_like and any(not learner_class(a).ppo_settings for a in args.algorithms):
         raise UserError("--reference-like restructures the PPO learners' training: give "
                         "--algorithms among mappo, ippo")
     print(f"# tabx bench train on {machine_summary()}; {args.scenario} vs {args.opponent}, "

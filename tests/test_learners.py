@@ -1,5 +1,6 @@
-"""MAPPO / IPPO learners: GAE, masking, the loss, the GRU trunk, the jitted update, configs,
-TensorBoard events, checkpoints and bit-exact resume.
+"""MAPPO / IPPO learners: the loss of a learner's minibatch, the GRU trunk, the jitted update,
+configs, TensorBoard events, checkpoints and bit-exact resume (GAE and the loss terms alone:
+tests/test_ppo_losses.py).
 
 The update tests share one tiny learner (2 archers v 1 farmer, 4 envs x 16 steps, hidden 16),
 so the update compiles once for the whole module; `test_learners_helpers.tiny_config` is also
@@ -25,98 +26,14 @@ from test_learners_helpers import (
     tiny_levels,
 )
 
-from tabx import constants as C
 from tabx.params import EnvConfig, repeat_level, stack_levels
 from ued.config import ConfigError, LearnerConfig, apply_overrides, config_from_dict, load_config
 from ued.learners import make_learner
 from ued.learners import networks as nw
 from ued.learners.ippo import IPPO
-from ued.learners.ppo import (
-    gae,
-    masked_logits,
-    policy_terms,
-    ppo_policy_loss,
-    team_mean,
-    value_loss,
-)
+from ued.learners.ppo import policy_terms, team_mean
 
-# --- GAE -------------------------------------------------------------------------------------
-
-
-def test_gae_matches_a_hand_computation():
-    gamma, lam = 0.9, 0.8
-    rewards = np.array([1.0, 0.0, 2.0, -1.0], np.float32)[:, None]
-    values = np.array([0.5, 0.2, 0.1, 0.3], np.float32)[:, None]
-    dones = np.array([False, True, False, False])[:, None]
-    last_value = np.array([0.7], np.float32)
-    adv, targets = gae(jnp.asarray(rewards), jnp.asarray(values), jnp.asarray(dones),
-                       jnp.asarray(last_value), gamma, lam)
-    # By hand, backwards: step 3 bootstraps from last_value; step 1 ends its episode.
-    d3 = -1.0 + gamma * 0.7 - 0.3
-    a3 = d3
-    d2 = 2.0 + gamma * 0.3 - 0.1
-    a2 = d2 + gamma * lam * a3
-    d1 = 0.0 + 0.0 - 0.2  # done: no bootstrap from the next episode's first state
-    a1 = d1
-    d0 = 1.0 + gamma * 0.2 - 0.5
-    a0 = d0 + gamma * lam * a1
-    np.testing.assert_allclose(adv[:, 0], [a0, a1, a2, a3], rtol=1e-6)
-    np.testing.assert_allclose(targets[:, 0], np.array([a0, a1, a2, a3]) + values[:, 0],
-                               rtol=1e-6, atol=1e-6)
-
-
-def test_gae_broadcasts_over_envs_and_agents():
-    rng = np.random.default_rng(0)
-    r = rng.normal(size=(5, 3, 2)).astype(np.float32)
-    v = rng.normal(size=(5, 3, 2)).astype(np.float32)
-    d = rng.random((5, 3, 1)) < 0.3
-    last = rng.normal(size=(3, 2)).astype(np.float32)
-    adv, _ = gae(r, v, jnp.asarray(d), last, 0.99, 0.95)
-    for e in range(3):
-        for a in range(2):
-            one, _ = gae(r[:, e, a], v[:, e, a], jnp.asarray(d[:, e, 0]), last[e, a], 0.99, 0.95)
-            np.testing.assert_allclose(adv[:, e, a], one, rtol=1e-5, atol=1e-6)
-
-
-# --- masking and the loss terms --------------------------------------------------------------
-
-
-def test_illegal_actions_have_zero_probability_and_are_never_sampled():
-    logits = jnp.array([[5.0, 1.0, 0.0, 2.0, 9.0, 0.0, 0.0, 3.0]])
-    mask = jnp.array([[True, False, True, True, False, False, False, True]])
-    probs = jax.nn.softmax(masked_logits(logits, mask))
-    assert float(probs[0, 1]) == 0.0 and float(probs[0, 4]) == 0.0
-    samples = jax.random.categorical(jax.random.key(0), masked_logits(logits, mask),
-                                     shape=(2000, 1))
-    assert set(np.unique(np.asarray(samples))) <= {0, 2, 3, 7}
-    logp, entropy = policy_terms(logits, mask, jnp.array([3]))
-    assert np.isfinite(float(logp[0])) and float(entropy[0]) > 0
-    # A unit with IDLE as its only action: log-probability 0, entropy 0.
-    only_idle = jnp.zeros((1, 8), bool).at[0, C.IDLE].set(True)
-    logp, entropy = policy_terms(logits, only_idle, jnp.array([C.IDLE]))
-    assert float(logp[0]) == pytest.approx(0.0) and float(entropy[0]) == pytest.approx(0.0)
-
-
-def test_loss_terms_ignore_invalid_entries():
-    rng = np.random.default_rng(1)
-    logp, old, adv = (jnp.asarray(rng.normal(size=6), jnp.float32) for _ in range(3))
-    valid = jnp.array([True, True, False, True, False, True])
-    loss, _, _ = ppo_policy_loss(logp, old, adv, valid, 0.2)
-    changed = jnp.where(valid, logp, 100.0), jnp.where(valid, adv, -50.0)
-    loss2, _, _ = ppo_policy_loss(changed[0], old, changed[1], valid, 0.2)
-    assert float(loss) == pytest.approx(float(loss2))
-    v, ov, tgt = (jnp.asarray(rng.normal(size=6), jnp.float32) for _ in range(3))
-    vl = value_loss(v, ov, tgt, valid, 0.05)
-    vl2 = value_loss(jnp.where(valid, v, 9.0), ov, tgt, valid, 0.05)
-    assert float(vl) == pytest.approx(float(vl2))
-
-
-def test_value_clipping_keeps_the_larger_loss():
-    v, old, target = jnp.array([1.0]), jnp.array([0.0]), jnp.array([2.0])
-    clipped = value_loss(v, old, target, jnp.array([True]), 0.1, clip=True)
-    unclipped = value_loss(v, old, target, jnp.array([True]), 0.1, clip=False)
-    assert float(unclipped) == pytest.approx(0.5)
-    assert float(clipped) == pytest.approx(0.5 * 1.9**2)  # clipped V = 0.1
+# --- the loss of a learner ------------------------------------------------------------------
 
 
 def test_team_mean_and_ippo_dead_agent_values():

@@ -44,10 +44,10 @@ def test_a_method_by_import_path_validates_and_draws_replays_by_its_own_rule():
     levels = service.fresh(jax.random.key(0), 4)
     service.insert(levels, np.array([0.1, 5.0, 0.2, 9.0]), np.zeros(4), 0)
     np.testing.assert_allclose(service.buffer.weights(), np.full(4, 0.25))
-    with pytest.raises(ConfigError, match=r"ued.method: cannot import 'no_such_module'"):
+    with pytest.raises(ConfigError, match=r"ued.method: no module 'no_such_module'"):
         ued_config("no_such_module:Method")
-    with pytest.raises(ConfigError, match=r"ued.method: module 'examples.uniform_replay' has "
-                                          r"no 'Nope'"):
+    with pytest.raises(ConfigError, match=r"ued.method: examples.uniform_replay \(.*"
+                                          r"uniform_replay.py\) has no 'Nope'"):
         ued_config("examples.uniform_replay:Nope")
     with pytest.raises(ConfigError, match=r"ued.method: 'numpy:ndarray' is not a "
                                           r"ued.curricula.Curriculum subclass"):

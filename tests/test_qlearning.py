@@ -55,7 +55,7 @@ def tiny_q_config(algorithm: str, tmp_dir: str = "runs", overrides: dict | None 
 @given(agents=st.integers(1, 6), seed=st.integers(0, 2**31 - 1))
 def test_vdn_is_the_sum_of_the_agent_values(agents, seed):
     learner = make_learner("vdn", ENV_CONFIG, LearnerConfig(num_envs=4, num_steps=8, hidden_dim=8),
-                           q=QLearningConfig(buffer_size=8, batch_size=4))
+                           settings=QLearningConfig(buffer_size=8, batch_size=4))
     q = jax.random.normal(jax.random.key(seed), (5, 3, agents)) * 10
     np.testing.assert_allclose(learner.mix(None, q, None), q.sum(-1),
                                rtol=1e-6)
@@ -111,7 +111,8 @@ def test_td_loss_equals_a_step_by_step_double_q_computation(algorithm):
     learner = make_learner(algorithm, ENV_CONFIG,
                            LearnerConfig(num_envs=4, num_steps=6, hidden_dim=8, gamma=0.9,
                                      matmul_dtype="float32"),
-                           q=QLearningConfig(buffer_size=8, batch_size=4, reward_scale=2.0))
+                           settings=QLearningConfig(buffer_size=8, batch_size=4,
+                                                    reward_scale=2.0))
     keys = jax.random.split(jax.random.key(7), 9)
     params, target = learner.init_params(keys[0]), learner.init_params(keys[1])
     T, B, A = 6, 3, learner.num_agents
@@ -171,12 +172,39 @@ def test_td_loss_equals_a_step_by_step_double_q_computation(algorithm):
     assert float(loss) == pytest.approx(float(np.mean(np.square(errors))), rel=1e-4)
 
 
+def test_a_mixing_q_learner_fits_what_its_class_mixes():
+    """Which targets the loss takes is the class's: a VDN subclass whose `mix` doubles the sum
+    doubles both Q_tot and, with no reward, its target, so the squared TD error is exactly 4
+    times VDN's."""
+    from ued.learners.qlearning import VDN, Trajectory
+
+    class DoubleVDN(VDN):
+        def mix(self, params, q, world):
+            return 2.0 * super().mix(params, q, world)
+
+    ppo = LearnerConfig(num_envs=4, num_steps=6, hidden_dim=8, matmul_dtype="float32")
+    q = QLearningConfig(buffer_size=8, batch_size=4)
+    vdn, double = VDN(ENV_CONFIG, ppo, q=q), DoubleVDN(ENV_CONFIG, ppo, q=q)
+    keys = jax.random.split(jax.random.key(3), 4)
+    params = vdn.init_params(keys[0])
+    T, B, A = 6, 3, vdn.num_agents
+    batch = Trajectory(
+        obs=jax.random.normal(keys[1], (T, B, A, ENV_CONFIG.obs_size)), world=None,
+        mask=jnp.ones((T, B, A, 8), bool), alive=jax.random.bernoulli(keys[2], 0.7, (T, B, A)),
+        action=jax.random.randint(keys[3], (T, B, A), 0, 8), reward=jnp.zeros((T, B)),
+        done=jnp.zeros((T, B), bool).at[2, 0].set(True))
+    loss, _ = vdn._loss(params, params, batch)
+    loss_double, _ = double._loss(params, params, batch)
+    assert float(loss) > 0 and float(loss_double) == 4 * float(loss)
+
+
 # --- configs ---------------------------------------------------------------------------------
 
 
 @pytest.mark.parametrize("overrides, message", [
     ({"algorithm": "dqn"},
-     "algorithm: must be one of mappo, ippo, mappo_rnd, iql, vdn, qmix, got 'dqn'"),
+     "algorithm: must be one of mappo, ippo, mappo_rnd, iql, vdn, qmix or a learner class "
+     "given as module:Class, got 'dqn'"),
     ({"qlearning.mixer_hidden_dim": 32}, "qlearning.mixer_hidden_dim: a setting of QMIX's "
                                          "mixing network; iql has none"),
     ({"learner.ent_coef": 0.1}, "learner.ent_coef: a PPO setting; iql does not use it"),
@@ -225,9 +253,9 @@ def test_every_q_config_file_loads_with_the_paper_settings():
 
 
 def test_make_learner_refuses_q_settings_for_ppo():
-    with pytest.raises(ValueError, match="mappo is not a Q-learner"):
-        make_learner("mappo", ENV_CONFIG, q=QLearningConfig())
-    with pytest.raises(ValueError, match="unknown algorithm 'dqn'"):
+    with pytest.raises(ValueError, match="mappo has no settings section of its own"):
+        make_learner("mappo", ENV_CONFIG, settings=QLearningConfig())
+    with pytest.raises(ValueError, match="algorithm: must be one of .*, got 'dqn'"):
         make_learner("dqn", ENV_CONFIG)
 
 
@@ -302,7 +330,7 @@ def test_learns_two_archers_against_a_farmer(algorithm):
                     total_timesteps=num_envs * num_steps * updates)
     q = QLearningConfig(buffer_size=num_envs * 8, batch_size=32, learning_starts=0,
                         target_update_interval=4, eps_decay=0.3)
-    learner = make_learner(algorithm, config, ppo, team="ally", opponent="random", q=q)
+    learner = make_learner(algorithm, config, ppo, team="ally", opponent="random", settings=q)
     state = learner.init(jax.random.key(0))
     key = jax.random.key(1)
     win_rates = []

@@ -2,7 +2,7 @@
 
 A config has six sections and top-level keys (`seed`, or `seeds` for several):
 
-    algorithm: mappo          # a learner of ued.registry: mappo, ippo, mappo_rnd, iql, vdn, qmix
+    algorithm: mappo          # mappo, ippo, mappo_rnd, iql, vdn, qmix, or a class: module:Class
     seed: 0                   # or seeds: [0, 1, 2]: several seeds in one program (PPO family)
     env:     {scenario, team, opponent, max_steps, profile}
     learner: {num_envs, num_steps, total_timesteps, optimiser, PPO's and RND's own} (LearnerConfig)
@@ -14,8 +14,9 @@ A config has six sections and top-level keys (`seed`, or `seeds` for several):
 
 Every field has a default (the paper's table "IPPO and MAPPO hyperparameters" and the
 reference's defaults; docs/differences.md lists where we differ), so a file only lists what
-differs. Which learner and curriculum names exist, and which sections and fields each reads,
-is `ued.registry`'s.
+differs. Which learner and curriculum names exist is `ued.registry`'s; which sections and
+fields a learner reads, its class's (ued.learners.ppo.PPOLearner). A learner given by path with
+a section of its own (`settings_section`) reads it from the top-level key of that name.
 
 `key=value` overrides address a field as `section.field` (`learner.lr=1e-3`) or by its bare
 name when that is unambiguous (`lr=1e-3`); values are read as YAML. Unknown keys, wrong types
@@ -48,12 +49,12 @@ from ued.registry import (
     LEARNERS,
     curriculum_class,
     is_import_path,
-    learner_entry,
+    learner_class,
     learners_where,
 )
 from ued.yaml_reader import read_yaml
 
-# `learner` fields only the PPO learners read (`LearnerEntry.ppo_settings`): another learner's
+# `learner` fields only the PPO learners read (`PPOLearner.ppo_settings`): another learner's
 # config must leave them as they are.
 PPO_ONLY_FIELDS = ("gae_lambda", "clip_eps", "clip_value", "ent_coef", "vf_coef",
                    "num_minibatches", "normalize_advantages")
@@ -103,7 +104,7 @@ class LearnerConfig:
     """The `learner:` section, read by every learner: the batch (num_envs x num_steps), the
     run's length, the optimiser, the network width and the devices; then the fields only the
     PPO learners read (`PPO_ONLY_FIELDS`) and MAPPO+RND's (`rnd_*`). A learner's settings
-    beyond these have a section of their own (`qlearning:`, `ued.registry.LearnerEntry.settings`).
+    beyond these have a section of their own (`qlearning:`, `PPOLearner.settings_section`).
     Defaults: the paper's table, and the reference for the rest."""
 
     num_envs: int = 128
@@ -124,7 +125,7 @@ class LearnerConfig:
     num_minibatches: int = 4  # minibatches over envs (all agents of an env stay together)
     normalize_advantages: bool = True  # per minibatch, over valid agent steps
     # Envs split over this many local devices (data parallel; one gradient, summed across
-    # them). 0: as many as divide the envs evenly (ued/learners/ppo.py `learner_devices`).
+    # them). 0: as many as divide the envs evenly (ued/learners/ppo/train.py `learner_devices`).
     num_devices: int = 0
     # The networks' matrix products: inputs rounded to this type, float32 accumulation
     # (bfloat16 = JAX's default precision on TPUs; about 1.3x faster updates on an AMX CPU);
@@ -415,7 +416,7 @@ class RaySection:
 class TrainConfig:
     """A whole training run."""
 
-    algorithm: str = "mappo"  # a registered learner (ued.registry)
+    algorithm: str = "mappo"  # a built-in learner (ued.registry.LEARNERS) or module:Class
     seed: int = 0
     # Several seeds of one plain MARL run trained side by side in one compiled program
     # (vmapped over seeds; workers.local.train_marl_seeds). Empty: the one `seed`.
@@ -427,11 +428,15 @@ class TrainConfig:
     ued: UEDSection = field(default_factory=UEDSection)
     levels: LevelSpace = field(default_factory=LevelSpace)
     ray: RaySection = field(default_factory=RaySection)
+    # The own section of a learner given by path, when TrainConfig has no field for it: the
+    # (field, value) pairs of its class's `settings_type`, read from and written to the
+    # top-level key `settings_section` (not a key of its own). Plain values, so that a
+    # config unpickles in a process that has not imported the learner's module yet.
+    algorithm_settings: tuple[tuple[str, Any], ...] = field(
+        default=(), metadata={"config_key": False})
 
     def validate(self) -> TrainConfig:
-        _check(self.algorithm in LEARNERS, "algorithm",
-               f"must be one of {', '.join(LEARNERS)}, got {self.algorithm!r}")
-        learner = learner_entry(self.algorithm)
+        learner = learner_class(self.algorithm)
         self.env.validate()
         self.learner.validate(ppo=learner.ppo_settings)
         self._validate_algorithm_settings()
@@ -483,8 +488,8 @@ class TrainConfig:
         _check(self.seed == 0, "seed", f"a multi-seed config lists its seeds in `seeds` only; "
                f"drop seed: {self.seed} (seeds: {list(self.seeds)})")
         supported = (f"several seeds train in one program for the PPO learners "
-                     f"({', '.join(learners_where(lambda e: e.seeds))}) on plain MARL runs")
-        _check(learner_entry(self.algorithm).seeds, "seeds",
+                     f"({', '.join(learners_where(lambda c: c.seeds))}) on plain MARL runs")
+        _check(learner_class(self.algorithm).seeds, "seeds",
                f"{supported}; {self.algorithm} trains one seed per run (give `seed`)")
         _check(not self.ray.enabled, "seeds",
                f"{supported} on the local driver; ray.enabled trains one seed per run")
@@ -496,32 +501,34 @@ class TrainConfig:
         """Settings the algorithm would ignore are mistakes: another learner's section
         (`qlearning` on PPO), PPO's `learner` fields on a Q-learner, another learner's own
         settings (QMIX's mixer on IQL, RND's on MAPPO). What each learner reads and supports
-        is its `ued.registry` entry."""
-        learner = learner_entry(self.algorithm)
+        is its class's (ued.learners.ppo.PPOLearner)."""
+        learner = learner_class(self.algorithm)
         changed = lambda section, names: [n for n in names if getattr(section, n) != getattr(
             type(section)(), n)]
-        for section in dict.fromkeys(e.settings for e in LEARNERS.values() if e.settings):
-            if section == learner.settings:
+        builtin = [learner_class(name) for name in LEARNERS]
+        for section in dict.fromkeys(c.settings_section for c in builtin if c.settings_section):
+            if section == learner.settings_section:
                 continue
-            owners = learners_where(lambda e, section=section: e.settings == section)
+            owners = learners_where(lambda c, section=section: c.settings_section == section)
             values = getattr(self, section)
             for name in changed(values, [f.name for f in dataclasses.fields(values)]):
                 raise ConfigError(f"{section}.{name}: a setting of the "
-                                  f"{LEARNERS[owners[0]].family} ({', '.join(owners)}); "
+                                  f"{learner_class(owners[0]).family} ({', '.join(owners)}); "
                                   f"{self.algorithm} does not use it")
         if not learner.ppo_settings:
             for name in changed(self.learner, PPO_ONLY_FIELDS):
                 raise ConfigError(f"learner.{name}: a PPO setting; {self.algorithm} does not "
                                   "use it")
-        for other in LEARNERS.values():
+        for other in builtin:
             for key in other.own_settings:
                 if key in learner.own_settings:
                     continue
                 section, name = key.split(".")
                 _check(not changed(getattr(self, section), [name]), key,
                        other.refusal.format(algorithm=self.algorithm))
-        if learner.settings is not None:
-            getattr(self, learner.settings).validate(self.learner.num_envs)
+        settings = self.learner_settings()
+        if settings is not None:
+            learner.validate_settings(settings, self.learner)
         _check(learner.devices or self.learner.num_devices <= 1, "learner.num_devices",
                f"{self.algorithm} runs on one device (its replay buffer lives there), got "
                f"{self.learner.num_devices}")
@@ -529,18 +536,36 @@ class TrainConfig:
                f"the UED curricula train MAPPO or IPPO; {self.algorithm} trains on the "
                f"scenarios of env.scenario (ued.method: none)")
 
+    def learner_settings(self) -> Any:
+        """The algorithm's own settings section (`settings_section` of its class: the
+        Q-learners' `qlearning`; a by-path learner's, built from `algorithm_settings`), or
+        None."""
+        cls = learner_class(self.algorithm)
+        if cls.settings_section is None:
+            return None
+        if cls.settings_section in _sections():
+            return getattr(self, cls.settings_section)
+        return cls.settings_type(**dict(self.algorithm_settings))
+
     @property
     def run_name(self) -> str:
         if self.run.name:
             return self.run.name
         scenario = Path(self.env.scenario[0]).stem
         more = f"+{len(self.env.scenario) - 1}" if len(self.env.scenario) > 1 else ""
-        method = (f"{self.ued.method}_{_name_part(self.levels.free)}_" if self.ued.enabled
-                  else "")
-        return f"{method}{self.algorithm}_{scenario}{more}"
+        method = (f"{self.ued.method.rpartition(':')[2]}_{_name_part(self.levels.free)}_"
+                  if self.ued.enabled else "")
+        algorithm = self.algorithm.rpartition(":")[2]  # a class by path: its name
+        return f"{method}{algorithm}_{scenario}{more}"
 
     def to_dict(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)
+        del out["algorithm_settings"]
+        own = _own_section(self.algorithm)
+        if own is not None:  # under its own key, every field written out
+            settings = self.learner_settings()
+            out[own[0]] = {f.name: list(v) if isinstance(v := getattr(settings, f.name), tuple)
+                           else v for f in dataclasses.fields(settings)}
         out["env"]["scenario"] = list(self.env.scenario)
         if self.seeds:
             out["seeds"] = list(self.seeds)
@@ -633,7 +658,7 @@ def _build(cls: type, data: Any, prefix: str) -> Any:
         raise ConfigError(f"{prefix or 'config'}: expected a mapping of keys to values, got "
                           f"{type(data).__name__}")
     hints = _type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls)}
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.metadata.get("config_key", True)}
     values = {}
     for key, value in data.items():
         full = f"{prefix}.{key}" if prefix else str(key)
@@ -655,7 +680,17 @@ def config_from_dict(data: Any, source: str = "config") -> TrainConfig:
     """A validated TrainConfig from a parsed YAML mapping, its `run.name` filled in
     (`fill_run_name`); errors name `source`."""
     try:
-        return fill_run_name(_build(TrainConfig, data, "")).validate()
+        own = _own_section(data.get("algorithm") if isinstance(data, Mapping) else None)
+        settings = ()
+        if own is not None:  # a by-path learner's section: read with its own fields
+            data = dict(data)
+            values = _build(own[1], data.pop(own[0], None), own[0])
+            settings = tuple((f.name, getattr(values, f.name))
+                             for f in dataclasses.fields(values))
+        config = _build(TrainConfig, data, "")
+        if settings:
+            config = dataclasses.replace(config, algorithm_settings=settings)
+        return fill_run_name(config).validate()
     except ConfigError as err:
         raise ConfigError(f"{source}: {err}") from None
 
@@ -703,6 +738,36 @@ def fill_run_name(config: TrainConfig) -> TrainConfig:
         raise ConfigError(f"run.name: unbalanced braces in {name!r:.80} ({{key}} names a "
                           f"config key)")
     return dataclasses.replace(config, run=dataclasses.replace(config.run, name=filled))
+
+
+@functools.cache
+def _sections() -> frozenset[str]:
+    """The names of TrainConfig's sections (fields that are dataclasses)."""
+    hints = _type_hints(TrainConfig)
+    return frozenset(f.name for f in dataclasses.fields(TrainConfig)
+                     if dataclasses.is_dataclass(hints[f.name]))
+
+
+def _own_section(algorithm: Any) -> tuple[str, type] | None:
+    """(key, dataclass) of the own section of a learner given by path (`algorithm:
+    module:Class`) that TrainConfig has no field for; None for any other algorithm (a
+    built-in name, or a value that validation refuses later)."""
+    if not isinstance(algorithm, str) or ":" not in algorithm:
+        return None
+    cls = learner_class(algorithm)
+    section, kind = cls.settings_section, cls.settings_type
+    if section is None:
+        return None
+    if section in _sections():  # a built-in section (a Q-learner's `qlearning`)
+        _check(kind is _type_hints(TrainConfig)[section], "algorithm",
+               f"{algorithm} reads the section {section!r}, whose type is "
+               f"{_type_hints(TrainConfig)[section].__name__}, not {kind!r}")
+        return None
+    _check(section not in {f.name for f in dataclasses.fields(TrainConfig)}
+           and isinstance(kind, type) and dataclasses.is_dataclass(kind), "algorithm",
+           f"{algorithm} names its settings section {section!r} with settings_type {kind!r}: "
+           f"the section must be a new top-level key, its type a dataclass")
+    return section, kind
 
 
 def load_config(path: str | Path, overrides: Sequence[str] = ()) -> TrainConfig:
@@ -787,6 +852,8 @@ def _field_paths() -> dict[str, list[str]]:
     out: dict[str, list[str]] = {}
     hints = _type_hints(TrainConfig)
     for f in dataclasses.fields(TrainConfig):
+        if not f.metadata.get("config_key", True):
+            continue
         tp = hints[f.name]
         if dataclasses.is_dataclass(tp):
             for sub in dataclasses.fields(tp):
@@ -796,14 +863,35 @@ def _field_paths() -> dict[str, list[str]]:
     return out
 
 
+def _override_section(data: Mapping, overrides: Sequence[str]) -> tuple[str, type] | None:
+    """`_own_section` of the algorithm the overrides leave (the last `algorithm=` override, or
+    the file's)."""
+    algorithm = data.get("algorithm")
+    for item in overrides:
+        key, sep, text = item.partition("=")
+        if sep and key.strip() == "algorithm":
+            try:
+                algorithm = yaml.safe_load(text)
+            except yaml.YAMLError:
+                algorithm = text
+    try:
+        return _own_section(algorithm)
+    except ConfigError:
+        return None  # refused, naming the override, when the config is validated
+
+
 def apply_overrides(data: Any, overrides: Sequence[str], source: str = "config") -> dict:
     """`data` (a parsed config mapping) with `key=value` overrides applied (values as YAML)."""
     if not isinstance(data, Mapping):
         raise ConfigError(f"{source}: expected a mapping of keys to values at the top level")
     out = {k: dict(v) if isinstance(v, Mapping) else v for k, v in data.items()}
     paths = _field_paths()
-    sections = {f.name for f in dataclasses.fields(TrainConfig)
-                if dataclasses.is_dataclass(_type_hints(TrainConfig)[f.name])}
+    sections = set(_sections())
+    valid = sorted(p for ps in paths.values() for p in ps)
+    own = _override_section(data, overrides)
+    if own is not None:  # a by-path learner's own section: its keys too
+        sections.add(own[0])
+        valid += [f"{own[0]}.{f.name}" for f in dataclasses.fields(own[1])]
     for item in overrides:
         key, sep, text = item.partition("=")
         key = key.strip()
@@ -827,7 +915,6 @@ def apply_overrides(data: Any, overrides: Sequence[str], source: str = "config")
                                   f"{', '.join(paths[key])}")
             key = paths[key][0]
         parts = key.split(".")
-        valid = sorted(p for ps in paths.values() for p in ps)
         if len(parts) > 2 or (len(parts) == 2 and (parts[0] not in sections
                                                    or key not in valid)):
             # Named here, as the override's mistake, not the config file's.

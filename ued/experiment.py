@@ -17,7 +17,7 @@ from tabx.params import EnvConfig, EnvParams, stack_levels
 from ued.config import ConfigError, TrainConfig
 from ued.learners import make_learner
 from ued.learners.ppo import PPOLearner
-from ued.registry import learner_entry
+from ued.registry import learner_class
 
 
 def scenario_levels(config: TrainConfig) -> tuple[EnvConfig, list[EnvParams]]:
@@ -46,14 +46,12 @@ def training_levels(config: TrainConfig) -> tuple[EnvConfig, EnvParams]:
 
 
 def learner_for(config: TrainConfig, env_config: EnvConfig | None = None) -> PPOLearner:
-    """The (per-process cached) learner of a config (its `ued.registry` entry says which
-    config section, beside `learner`, it reads)."""
+    """The (per-process cached) learner of a config, with its own settings section if its
+    class has one (`TrainConfig.learner_settings`)."""
     if env_config is None:
         env_config = scenario_levels(config)[0]
-    settings = learner_entry(config.algorithm).settings
-    q = None if settings is None else getattr(config, settings)
     return make_learner(config.algorithm, env_config, config.learner, config.env.team,
-                        config.env.opponent, q=q)
+                        config.env.opponent, settings=config.learner_settings())
 
 
 def seed_keys(seeds: Sequence[int]) -> jax.Array:
@@ -95,7 +93,7 @@ def memory_floor(config: TrainConfig, env_config: EnvConfig, level: EnvParams) -
         _ENV_BYTES[env_config] = (size(state), size(jax.eval_shape(env.observe, state, level)))
     state_bytes, obs_bytes = _ENV_BYTES[env_config]
     learner = config.learner
-    steps = learner.num_steps if learner_entry(config.algorithm).ppo_settings else 1
+    steps = learner.num_steps if learner_class(config.algorithm).ppo_settings else 1
     return learner.num_envs * (size(level) + state_bytes + steps * obs_bytes)
 
 

@@ -1,25 +1,29 @@
 """The registry of UED curricula and learners: what each method needs, by name, without
-building it.
+building it, and the import of a method's class given by path ("module:Class").
 
 A curriculum's entry is its name and class: the class says what it needs (a level buffer, its
 branches, its scores; `ued.curricula.base`), and any other `Curriculum` subclass is used by
-import path (`ued.method: my_module:MyCurriculum`, `curriculum_class`). A learner's entry says
-which config sections it reads and what it supports (a value head, several seeds in one
-program, the UED curricula, several devices). Config validation, `tabx runs check` and the
-drivers read them; importing a class compiles and allocates nothing.
+import path (`ued.method: my_module:MyCurriculum`, `curriculum_class`). Importing a class
+compiles and allocates nothing.
 
-A method is registered once, here (the built-in ones) or by its own module (`register_curriculum`,
-`register_learner`; tests/example_curriculum.py is a worked example). `build`/`cls` name the
-method's class as "package.module:Class" (imported when first used) or are the class itself.
+A learner is its class: `LEARNERS` maps the built-in names to their classes' paths, and
+`algorithm: module:Class` names any other (`learner_class`). What a learner reads and supports
+(its own config section, a value head, several seeds in one program, the UED curricula,
+several devices) are class attributes (ued.learners.ppo.PPOLearner), read without building it.
+
+`import_path` imports a class given by path for any config key, and `import_env` hands the
+folders it found them in to the run's other processes (Ray actors, sweep trials).
 """
 
 from __future__ import annotations
 
 import importlib
 import os
+import re
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from ued.errors import ConfigError
@@ -31,6 +35,73 @@ def _resolve(ref: str | Callable[..., Any]) -> Any:
         return ref
     module, _, attribute = ref.partition(":")
     return getattr(importlib.import_module(module), attribute)
+
+
+# --- classes by import path ----------------------------------------------------------------------
+
+# Folders (os.pathsep-separated) where `import_path` also looks for a module: the Ray actors and
+# the sweep's trials get the folders of the driver's by-path imports here (`import_env`).
+IMPORT_PATH_ENV = "TABX_IMPORT_PATH"
+_PATH = re.compile(r"[A-Za-z_]\w*(\.[A-Za-z_]\w*)*:[A-Za-z_]\w*(\.[A-Za-z_]\w*)*")
+_ROOTS: dict[str, None] = {}  # the folders this process's by-path imports came from
+
+
+def import_path(ref: str, key: str) -> Any:
+    """The object `ref` names as "package.module:Attribute", a class defined outside the project
+    included, for the config key `key`. The module is looked for on sys.path, then in the
+    current folder and the folders of $TABX_IMPORT_PATH. A `ref` of another form, a module that
+    is not found or fails to import, or a missing attribute is a ConfigError, one line naming
+    `key`."""
+    if not isinstance(ref, str) or not _PATH.fullmatch(ref):
+        raise ConfigError(f"{key}: expected a class as module:Class (e.g. my_module:MyClass), "
+                          f"got {ref!r}")
+    module_name, _, attribute = ref.partition(":")
+    for folder in [os.getcwd(), *os.environ.get(IMPORT_PATH_ENV, "").split(os.pathsep)]:
+        if folder and folder not in sys.path:
+            sys.path.append(folder)  # last: a file there shadows no installed module
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as err:
+        if err.name and (module_name + ".").startswith(err.name + "."):
+            raise ConfigError(f"{key}: no module {err.name!r} (looked on sys.path and in "
+                              f"{os.getcwd()}); run from its folder or put that folder on "
+                              f"PYTHONPATH") from None
+        raise ConfigError(f"{key}: importing {module_name} failed: {err}") from None
+    except Exception as err:  # noqa: BLE001 - any error of the user's module, in one line
+        text = " ".join(str(err).split())
+        raise ConfigError(f"{key}: importing {module_name} failed: {type(err).__name__}: "
+                          f"{text}") from None
+    value: Any = module
+    for part in attribute.split("."):
+        if not hasattr(value, part):
+            raise ConfigError(f"{key}: {module_name} ({getattr(module, '__file__', '?')}) has "
+                              f"no {attribute!r}")
+        value = getattr(value, part)
+    _remember_root(module_name)
+    return value
+
+
+def _remember_root(module_name: str) -> None:
+    """Note the sys.path folder the top-level package of `module_name` was found in."""
+    spec = getattr(sys.modules.get(module_name.split(".")[0]), "__spec__", None)
+    if spec is None:
+        return
+    if spec.submodule_search_locations:  # a package: its folder's parent
+        root = Path(list(spec.submodule_search_locations)[0]).parent
+    elif spec.origin and spec.has_location:  # a module file: its folder
+        root = Path(spec.origin).parent
+    else:
+        return
+    _ROOTS[str(root)] = None
+
+
+def import_env() -> dict[str, str]:
+    """The environment variable that lets another process of this run (a Ray actor, a sweep
+    trial) import what this one imported by path: {IMPORT_PATH_ENV: folders}, or {} if
+    nothing was."""
+    folders = dict.fromkeys([*os.environ.get(IMPORT_PATH_ENV, "").split(os.pathsep), *_ROOTS])
+    folders.pop("", None)
+    return {IMPORT_PATH_ENV: os.pathsep.join(folders)} if folders else {}
 
 
 # --- curricula -----------------------------------------------------------------------------------
@@ -67,26 +138,6 @@ def is_import_path(ref: str) -> bool:
     """Whether a method or algorithm name is an import path, "module:Class"."""
     module, colon, attribute = ref.partition(":")
     return bool(colon and module and attribute)
-
-
-def import_path(ref: str, key: str) -> Any:
-    """The object "module:Attribute" names, imported as `python -m` would from the current
-    directory (which Ray's actors and Tune's trials then import from too). ConfigError
-    naming `key` when it cannot be imported."""
-    module, _, attribute = ref.partition(":")
-    if "" not in sys.path and os.getcwd() not in sys.path:
-        sys.path.insert(0, os.getcwd())
-    try:
-        found = importlib.import_module(module)
-    except Exception as err:  # noqa: BLE001 - the user's module: any error is theirs to fix
-        raise ConfigError(f"{key}: cannot import {module!r} for {ref!r} "
-                          f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
-                          f"); run from its folder or put it on PYTHONPATH") from None
-    try:
-        return getattr(found, attribute)
-    except AttributeError:
-        raise ConfigError(f"{key}: module {module!r} has no {attribute!r} (for {ref!r})"
-                          ) from None
 
 
 def curriculum_class(method: str, key: str = "ued.method") -> type:
@@ -127,78 +178,47 @@ for _entry in (CurriculumEntry("dr", "ued.curricula.dr:DomainRandomization"),
 
 # --- learners ------------------------------------------------------------------------------------
 
-
-@dataclass(frozen=True)
-class LearnerEntry:
-    """A learner (`algorithm`): the config it reads, what it supports, and its class (called
-    as `cls(env_config, learner_section, team, opponent[, settings_section])`)."""
-
-    name: str
-    cls: str | Callable[..., Any]
-    family: str  # how config errors name its kind: "PPO learners", "Q-learners"
-    # Its own config section beside `learner` (an attribute of TrainConfig), passed to the
-    # class as its fifth argument; None: `learner` only.
-    settings: str | None = None
-    ppo_settings: bool = False  # reads the `learner` fields only PPO reads (ued.config)
-    # "section.field" settings only this learner reads: any other learner must leave them at
-    # their defaults, or the config is refused with `refusal` (formatted with `algorithm`).
-    own_settings: tuple[str, ...] = ()
-    refusal: str = ""
-    value_head: bool = False  # has a value head (run.value_error_every)
-    seeds: bool = False  # several seeds train in one vmapped program (`seeds`)
-    curricula: bool = False  # the UED curricula can train it (ued.method)
-    devices: bool = False  # data parallel over several devices (learner.num_devices)
-
-    def load(self) -> type:
-        """The learner class (imports its module)."""
-        return _resolve(self.cls)
+# The built-in learners: `algorithm` name -> class. A learner's class says what it reads and
+# supports (the class attributes of ued.learners.ppo.PPOLearner); `algorithm: module:Class`
+# names any other learner class by its import path, registered nowhere.
+LEARNERS: dict[str, str] = {
+    "mappo": "ued.learners.mappo:MAPPO",
+    "ippo": "ued.learners.ippo:IPPO",
+    "mappo_rnd": "ued.learners.rnd:MAPPORND",
+    "iql": "ued.learners.qlearning:IQL",
+    "vdn": "ued.learners.qlearning:VDN",
+    "qmix": "ued.learners.qlearning:QMIX",
+}
 
 
-LEARNERS: dict[str, LearnerEntry] = {}
+# What config validation and the drivers read of a learner class (ued.learners.ppo.PPOLearner
+# has them all): a class by path without them is refused when the config is read.
+LEARNER_ATTRIBUTES = ("name", "family", "settings_section", "settings_type", "ppo_settings",
+                      "own_settings", "refusal", "value_head", "seeds", "curricula", "devices",
+                      "validate_settings", "init", "update", "score", "policy_step")
 
 
-def register_learner(entry: LearnerEntry) -> LearnerEntry:
-    """Add (or replace) the learner of `entry.name`."""
-    LEARNERS[entry.name] = entry
-    return entry
+def learner_class(algorithm: str, key: str = "algorithm") -> type:
+    """The learner class of `algorithm`: a built-in name (`LEARNERS`) or "module:Class" (a
+    subclass of ued.learners.ppo.PPOLearner). ConfigError naming `key` when it is neither."""
+    if algorithm in LEARNERS:
+        return _resolve(LEARNERS[algorithm])
+    if not isinstance(algorithm, str) or ":" not in algorithm:
+        raise ConfigError(f"{key}: must be one of {', '.join(LEARNERS)} or a learner class "
+                          f"given as module:Class, got {algorithm!r}")
+    cls = import_path(algorithm, key)
+    missing = [name for name in LEARNER_ATTRIBUTES if not hasattr(cls, name)]
+    if not isinstance(cls, type) or missing:
+        raise ConfigError(f"{key}: {algorithm} is not a learner class (a subclass of "
+                          f"ued.learners.ppo.PPOLearner; it has no {', '.join(missing)})")
+    return cls
 
 
-def learner_entry(algorithm: str) -> LearnerEntry:
-    """The registry entry of `algorithm`; ValueError naming the registered ones if none."""
-    try:
-        return LEARNERS[algorithm]
-    except KeyError:
-        raise ValueError(f"unknown algorithm {algorithm!r}; expected one of "
-                         f"{', '.join(LEARNERS)}") from None
+def learners_where(test: Callable[[type], bool]) -> tuple[str, ...]:
+    """The names of the built-in learners whose class passes `test`, in `LEARNERS` order."""
+    return tuple(name for name in LEARNERS if test(learner_class(name)))
 
 
-def learners_where(test: Callable[[LearnerEntry], bool]) -> tuple[str, ...]:
-    """The names of the registered learners whose entry passes `test`, in registry order."""
-    return tuple(name for name, entry in LEARNERS.items() if test(entry))
-
-
-_RND = tuple(f"learner.rnd_{name}" for name in (
-    "reward_coef", "gae_coef", "loss_coef", "lr", "update_epochs", "hidden_dim", "output_dim",
-    "layers"))
-_MIXER = ("qlearning.mixer_embed_dim", "qlearning.mixer_hidden_dim",
-          "qlearning.mixer_init_scale")
-_PPO = dict(family="PPO learners", ppo_settings=True, value_head=True, seeds=True,
-            curricula=True, devices=True)
-_Q = dict(family="Q-learners", settings="qlearning")
-
-for _entry in (
-        LearnerEntry("mappo", "ued.learners.mappo:MAPPO", **_PPO),
-        LearnerEntry("ippo", "ued.learners.ippo:IPPO", **_PPO),
-        LearnerEntry("mappo_rnd", "ued.learners.rnd:MAPPORND", **_PPO, own_settings=_RND,
-                     refusal="RND settings go with algorithm mappo_rnd, not {algorithm}"),
-        LearnerEntry("iql", "ued.learners.qlearning:IQL", **_Q),
-        LearnerEntry("vdn", "ued.learners.qlearning:VDN", **_Q),
-        LearnerEntry("qmix", "ued.learners.qlearning:QMIX", **_Q, own_settings=_MIXER,
-                     refusal="a setting of QMIX's mixing network; {algorithm} has none")):
-    register_learner(_entry)
-del _entry
-
-
-__all__ = ["CURRICULA", "LEARNERS", "CurriculumEntry", "LearnerEntry", "curriculum_class",
-           "curriculum_entry", "curriculum_for", "import_path", "is_import_path",
-           "learner_entry", "learners_where", "register_curriculum", "register_learner"]
+__all__ = ["CURRICULA", "IMPORT_PATH_ENV", "LEARNERS", "LEARNER_ATTRIBUTES", "CurriculumEntry",
+           "curriculum_class", "curriculum_entry", "curriculum_for", "import_env", "import_path",
+           "is_import_path", "learner_class", "learners_where", "register_curriculum"]

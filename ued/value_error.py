@@ -183,17 +183,17 @@ def analyse_runs(run_dirs: list[str], scenarios: list[str] | None, states: int,
                  ) -> list[dict]:
     """One record per (run, scenario): run, algorithm, update, scenario and `summary()`."""
     from tabx.scenarios import ScenarioError, load_named
-    from ued.registry import learner_entry, learners_where
+    from ued.registry import learner_class, learners_where
     from ued.run_folder import load_policy, read_run_config, split_seed_dir
 
     for run_dir in run_dirs:  # before any run is loaded or compiled
         algorithm = read_run_config(split_seed_dir(run_dir)[0]).algorithm
-        if not learner_entry(algorithm).value_head:
+        if not learner_class(algorithm).value_head:
             raise ConfigError(
                 f"{run_dir}: a {algorithm} run has no value head: the value error compares a "
                 f"learner's V(s) with Monte-Carlo returns, and a Q-learner's greedy Q is in "
                 f"other units (scaled rewards; VDN and QMIX mix it into the team's value); "
-                f"analyse runs of {', '.join(learners_where(lambda e: e.value_head))}")
+                f"analyse runs of {', '.join(learners_where(lambda c: c.value_head))}")
     records = []
     for run_dir in run_dirs:
         policy = load_policy(run_dir, checkpoint)

@@ -179,8 +179,12 @@ def check_reachable(address: str, setting: str | None = None, timeout_s: float =
 
 def actor_env(gpu: bool) -> dict[str, str]:
     """Environment of an actor process: JAX on CPU unless it holds a GPU; a GPU holder does not
-    preallocate, so several JAX processes can share a node; the compilation cache shared."""
-    env = dict(RAY_ENV)
+    preallocate, so several JAX processes can share a node; the compilation cache shared; the
+    folders of the classes the config names by path (`ued.registry.import_env`: a learner or
+    curriculum defined outside the project imports there as here)."""
+    from ued.registry import import_env
+
+    env = {**RAY_ENV, **import_env()}
     if gpu:
         env["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
     else:

@@ -72,7 +72,10 @@ def is_finished(folder: SweepFolder, trial: str) -> bool:
 def worker_env(spec: SweepSpec) -> dict[str, str]:
     """The environment of the trials' processes: JAX on the CPU unless a trial holds a GPU
     (and then no preallocation, since trials may share one), and one XLA CPU device per CPU
-    the trial holds (`tabx.xla_flags`: the learner splits its envs over them)."""
+    the trial holds (`tabx.xla_flags`: the learner splits its envs over them); the folders of
+    the classes the trials' configs name by path (`ued.registry.import_env`)."""
+    from ued.registry import import_env
+
     flags = [f for f in os.environ.get("XLA_FLAGS", "").split()
              if not f.startswith("--xla_force_host_platform_device_count")]
     cpus = int(spec.resources.cpus)
@@ -86,7 +89,7 @@ def worker_env(spec: SweepSpec) -> dict[str, str]:
     for name in ("PYTHONPATH", "TABX_COMPILE_CACHE_DIR", "RAY_USAGE_STATS_ENABLED"):
         if os.environ.get(name):
             env[name] = os.environ[name]
-    return env
+    return {**env, **import_env()}
 
 
 def import_tune() -> Any:

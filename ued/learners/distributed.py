@@ -7,7 +7,7 @@ A learner group is N processes (on one machine or many) that each call
 before JAX starts its backend, then run the same program: the same `learner.init(key)`, then
 `learner.update(train_state, levels, key)` with the same arguments in every process. Process 0
 hosts the coordinator at HOST:PORT (a port free on its node). After `join`, the learner's
-data-parallel update (`PPOLearner.learner_devices`, ued/learners/ppo.py) runs over a global
+data-parallel update (`PPOLearner.learner_devices`, ued/learners/ppo/train.py) runs over a global
 mesh of every process's devices: each process puts only its own share of the envs on its
 devices (`to_global`), plays those envs, and the gradients and statistics are reduced across
 processes by XLA's collectives inside the one jitted program (the `psum`s of the update),

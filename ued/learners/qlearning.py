@@ -1,4 +1,5 @@
-"""Recurrent Q-learning for TABX teams: IQL, VDN and QMIX, one core with a mixer choice.
+"""Recurrent Q-learning for TABX teams: IQL, VDN and QMIX, one core (`QLearner`, IQL's
+per-agent targets) and its mixing subclasses (`MixingQLearner`: VDN's sum, QMIX's network).
 
 The learners share the PPO learners' interface (ued.learners.ppo: `init`, the jitted
 `update(train_state, levels, key)`, `policy_step` for evaluation) and their rollout: each
@@ -158,13 +159,25 @@ def epsilon_schedule(q: QLearningConfig, num_updates: int) -> optax.Schedule:
 
 
 class QLearner(PPOLearner):
-    """Static description of a recurrent Q-learner for one EnvConfig (see the module doc).
-    `mixer`: "none" (IQL), "vdn" or "qmix". Runs on one device: the replay buffer lives
-    there, and the whole update (rollout, insert, sampling, gradient steps, target update) is
-    one jitted program; other levels of the same EnvConfig never recompile it."""
+    """Static description of a recurrent Q-learner for one EnvConfig (see the module doc):
+    each agent learns its own Q-values of the team reward (IQL); `MixingQLearner` mixes them
+    into the team's. Runs on one device: the replay buffer lives there, and the whole update
+    (rollout, insert, sampling, gradient steps, target update) is one jitted program; other
+    levels of the same EnvConfig never recompile it."""
 
     name = "qlearning"
-    mixer = "none"
+    family = "Q-learners"
+    settings_section = "qlearning"
+    settings_type = QLearningConfig
+    ppo_settings = False
+    value_head = False
+    seeds = False
+    curricula = False
+    devices = False
+
+    @classmethod
+    def validate_settings(cls, settings: QLearningConfig, learner: LearnerConfig) -> None:
+        settings.validate(learner.num_envs)
 
     def __init__(self, env_config: EnvConfig, ppo: LearnerConfig | None = None,
                  team: str | int = "ally", opponent: str | Controller = "heuristic:medium",
@@ -172,9 +185,6 @@ class QLearner(PPOLearner):
         self.q = q if q is not None else QLearningConfig()
         ppo = ppo if ppo is not None else LearnerConfig()
         self.q.validate(ppo.num_envs)  # the buffer's sizes (a ConfigError naming the field)
-        # The QMIX mixer reads the world state (the rollout records it for centralised
-        # learners only).
-        self.centralised = self.mixer == "qmix"
         self.epsilon = epsilon_schedule(self.q, ppo.num_updates)
         self.per_env = self.q.buffer_size // ppo.num_envs
         self.buffer = fbx.make_trajectory_buffer(
@@ -188,13 +198,12 @@ class QLearner(PPOLearner):
 
     def init_params(self, key: jax.Array) -> dict[str, Any]:
         k_agent, k_mixer = jax.random.split(key)
-        params = {"agent": qnet_init(k_agent, self.obs_dim, self.ppo.hidden_dim)}
-        if self.mixer == "qmix":
-            q = self.q
-            params["mixer"] = mixers.qmix_init(k_mixer, self.num_agents, self.state_dim,
-                                               q.mixer_embed_dim, q.mixer_hidden_dim,
-                                               q.mixer_init_scale)
-        return params
+        return {"agent": qnet_init(k_agent, self.obs_dim, self.ppo.hidden_dim),
+                **self.mixer_params(k_mixer)}
+
+    def mixer_params(self, key: jax.Array) -> dict[str, Any]:
+        """The parameters of a mixing network, beside the agent network's (none here)."""
+        return {}
 
     def initial_hidden(self, num_envs: int) -> jax.Array:
         return jnp.zeros((num_envs, self.num_agents, self.ppo.hidden_dim), jnp.float32)
@@ -228,13 +237,6 @@ class QLearner(PPOLearner):
         explored, random = jax.vmap(explore)(keys, mask)
         action = jnp.where(explored, random, greedy).astype(jnp.int32)
         return hidden, action, jnp.zeros(action.shape, jnp.float32), pick(q, greedy)
-
-    def mix(self, params: Any, q: jax.Array, world: jax.Array | None) -> jax.Array:
-        """Q_tot (...) of agent values q (..., A) (zero for dead agents) and world states
-        (..., S) (QMIX; None for VDN)."""
-        if self.mixer == "vdn":
-            return mixers.vdn(q)
-        return mixers.qmix(params["mixer"], q, world)
 
     # --- optimiser and state -----------------------------------------------------------------
 
@@ -360,7 +362,7 @@ class QLearner(PPOLearner):
     def _loss(self, params: Any, target_params: Any, batch: Trajectory
               ) -> tuple[jax.Array, dict[str, jax.Array]]:
         """Mean squared TD error of a batch of trajectories (time-major, (T, B, ...))."""
-        gamma, scale = self.ppo.gamma, self.q.reward_scale
+        scale = self.q.reward_scale
         steps, size, agents = batch.action.shape
         starts = jnp.concatenate([jnp.ones((1, size), bool), batch.done[:-1]], axis=0)
         x = self.agent_inputs(batch.obs).reshape(steps, size * agents, -1)
@@ -382,21 +384,25 @@ class QLearner(PPOLearner):
         reward = batch.reward * scale
         cont = 1.0 - batch.done.astype(jnp.float32)
         in_loss = jnp.ones((steps, size), bool).at[-1].set(batch.done[-1])
-        if self.mixer == "none":
-            target = reward[..., None] + gamma * cont[..., None] * next_alive * next_q
-            valid = batch.alive & in_loss[..., None]
-        else:
-            zero_dead = lambda v, a: jnp.where(a, v, 0.0)
-            taken = self.mix(params, zero_dead(taken, batch.alive), batch.world)
-            next_world = None if batch.world is None else _shift_in_zero(batch.world[1:])
-            next_q = self.mix(target_params, zero_dead(next_q, next_alive), next_world)
-            target = reward + gamma * cont * next_q
-            valid = in_loss
+        taken, target, valid = self.td_terms(params, target_params, batch, taken, next_q,
+                                             next_alive, reward, cont, in_loss)
         td = taken - jax.lax.stop_gradient(target)
         count = jnp.maximum(jnp.sum(valid), 1)
         mean = lambda v: jnp.sum(jnp.where(valid, v, 0.0)) / count
         loss = mean(jnp.square(td))
         return loss, {"loss/td": loss, "q/taken": mean(taken), "q/target": mean(target)}
+
+    def td_terms(self, params: Any, target_params: Any, batch: Trajectory, taken: jax.Array,
+                 next_q: jax.Array, next_alive: jax.Array, reward: jax.Array,
+                 cont: jax.Array, in_loss: jax.Array
+                 ) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """(the Q-values the loss fits, their targets, which entries enter the loss) from the
+        agents' Q of the taken actions and their double-Q next values (T, B, A), the scaled
+        reward, 1 - done and the steps in the loss (T, B). Here each agent's own: no bootstrap
+        past its unit's death, only the steps where it is alive (IQL)."""
+        gamma = self.ppo.gamma
+        target = reward[..., None] + gamma * cont[..., None] * next_alive * next_q
+        return taken, target, batch.alive & in_loss[..., None]
 
     # --- scoring -----------------------------------------------------------------------------
 
@@ -412,23 +418,56 @@ class IQL(QLearner):
     """Independent Q-learning: each agent's own Q-values, no mixer."""
 
     name = "iql"
-    mixer = "none"
 
 
-class VDN(QLearner):
+class MixingQLearner(QLearner):
+    """A Q-learner of the team's Q_tot, mixed from the agents' Q-values (`mix`): the TD error
+    of Q_tot against the team's target, dead agents entering the mixer with Q = 0."""
+
+    def mix(self, params: Any, q: jax.Array, world: jax.Array | None) -> jax.Array:
+        """Q_tot (...) of agent values q (..., A) (zero for dead agents) and world states
+        (..., S) (None unless `centralised`)."""
+        raise NotImplementedError
+
+    def td_terms(self, params, target_params, batch, taken, next_q, next_alive, reward, cont,
+                 in_loss):
+        gamma = self.ppo.gamma
+        zero_dead = lambda v, a: jnp.where(a, v, 0.0)
+        taken = self.mix(params, zero_dead(taken, batch.alive), batch.world)
+        next_world = None if batch.world is None else _shift_in_zero(batch.world[1:])
+        next_q = self.mix(target_params, zero_dead(next_q, next_alive), next_world)
+        return taken, reward + gamma * cont * next_q, in_loss
+
+
+class VDN(MixingQLearner):
     """Value decomposition: Q_tot is the sum of the agents' Q-values."""
 
     name = "vdn"
-    mixer = "vdn"
+
+    def mix(self, params, q, world):
+        return mixers.vdn(q)
 
 
-class QMIX(QLearner):
-    """QMIX: a monotonic mixing network conditioned on the world state."""
+class QMIX(MixingQLearner):
+    """QMIX: a monotonic mixing network conditioned on the world state (which the rollout
+    records for centralised learners only)."""
 
     name = "qmix"
-    mixer = "qmix"
+    centralised = True
+    own_settings = ("qlearning.mixer_embed_dim", "qlearning.mixer_hidden_dim",
+                    "qlearning.mixer_init_scale")
+    refusal = "a setting of QMIX's mixing network; {algorithm} has none"
+
+    def mixer_params(self, key):
+        q = self.q
+        return {"mixer": mixers.qmix_init(key, self.num_agents, self.state_dim,
+                                          q.mixer_embed_dim, q.mixer_hidden_dim,
+                                          q.mixer_init_scale)}
+
+    def mix(self, params, q, world):
+        return mixers.qmix(params["mixer"], q, world)
 
 
-__all__ = ["GREEDY_LOGIT_SCALE", "IQL", "QMIX", "QLearner",
+__all__ = ["GREEDY_LOGIT_SCALE", "IQL", "QMIX", "MixingQLearner", "QLearner",
            "QTrainState", "Trajectory", "VDN", "epsilon_schedule",
            "masked_argmax", "qnet_init", "qnet_sequence", "qnet_step"]

@@ -70,6 +70,10 @@ class MAPPORND(MAPPO):
 
     name = "mappo_rnd"
     frozen_groups = ("rnd",)
+    own_settings = tuple(f"learner.rnd_{name}" for name in (
+        "reward_coef", "gae_coef", "loss_coef", "lr", "update_epochs", "hidden_dim",
+        "output_dim", "layers"))
+    refusal = "RND settings go with algorithm mappo_rnd, not {algorithm}"
 
     def __init__(self, *args: Any, **kwargs: Any):
         super().__init__(*args, **kwargs)

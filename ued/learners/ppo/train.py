@@ -1,4 +1,5 @@
-"""Recurrent PPO for TABX teams: rollout, GAE, the clipped loss and the jitted update.
+"""The PPO learner: the rollout and the jitted update (GAE and the loss terms are
+`ued.learners.ppo.losses`, the data-parallel placement `ued.learners.ppo.devices`).
 
 `PPOLearner` holds everything static (env sizes, hyperparameters, which team learns, who plays
 the other team, the optimiser); `MAPPO` (ued.learners.mappo) and `IPPO` (ued.learners.ippo)
@@ -43,19 +44,28 @@ import jax
 import jax.numpy as jnp
 import optax
 from flax import struct
-from jax.flatten_util import ravel_pytree
 
 from tabx import constants as C
 from tabx.controllers import Controller, controlled_actions, with_tiers
-from tabx.devices import available_devices
 from tabx.env import TabxEnv
 from tabx.jit_options import learner_jit
 from tabx.params import EnvConfig, EnvParams
 from tabx.state import EnvState
 from ued.config import LearnerConfig
 from ued.learners import distributed
+from ued.learners.ppo.devices import ENVS, env_mesh, local_devices, on_devices, psum_flat
+from ued.learners.ppo.losses import (
+    gae,
+    masked_logits,
+    masked_mean,
+    moments,
+    policy_terms,
+    ppo_policy_loss,
+    team_mean,
+    valid_count,
+    value_loss,
+)
 
-MASKED_LOGIT = -1e10
 START_KEY_STREAM = 0x5741  # folded into a rollout's first keys to draw its start positions
 
 
@@ -98,136 +108,6 @@ class Transition:
     won: jax.Array  # (E,) the team won the episode that ended
 
 
-# --- pure helpers (unit-tested on their own) -------------------------------------------------
-
-
-def gae(rewards: jax.Array, values: jax.Array, dones: jax.Array, last_value: jax.Array,
-        gamma: float, lam: float) -> tuple[jax.Array, jax.Array]:
-    """Generalised advantage estimation, time-major: (advantages, value targets).
-
-    rewards, values, dones: (T, ...); dones[t] ends the episode at step t, so V(s_{t+1}) (the
-    next episode's first state) is not bootstrapped; last_value: (...) V of the state after the
-    last step. delta_t = r_t + gamma V_{t+1} (1 - d_t) - V_t and
-    A_t = delta_t + gamma lam (1 - d_t) A_{t+1}."""
-    def body(carry, inputs):
-        adv_next, value_next = carry
-        reward, value, done = inputs
-        cont = 1.0 - done.astype(jnp.float32)
-        delta = reward + gamma * value_next * cont - value
-        adv = delta + gamma * lam * cont * adv_next
-        return (adv, value), adv
-
-    init = (jnp.zeros_like(last_value), last_value)
-    _, adv = jax.lax.scan(body, init, (rewards, values, dones), reverse=True, unroll=8)
-    return adv, adv + values
-
-
-def masked_logits(logits: jax.Array, mask: jax.Array) -> jax.Array:
-    """Logits with illegal actions set to -1e10 (probability zero)."""
-    return jnp.where(mask, logits, MASKED_LOGIT)
-
-
-def masked_mean(x: jax.Array, valid: jax.Array, count: jax.Array | None = None) -> jax.Array:
-    """Mean of `x` over the entries where `valid` (whatever the others hold, inf or NaN
-    included); 0 if there are none. `count` replaces the number of valid entries as the
-    divisor: a data-parallel shard passes the count over all shards, so that the shards'
-    values sum to the mean over all of them."""
-    valid = jnp.broadcast_to(valid, x.shape)
-    if count is None:
-        count = valid_count(valid)
-    return jnp.sum(jnp.where(valid, x, 0.0)) / count.astype(x.dtype)
-
-
-def valid_count(valid: jax.Array, axis_name: str | None = None) -> jax.Array:
-    """The number of valid entries (over all shards of `axis_name`), at least 1: the
-    divisor of `masked_mean`."""
-    count = jnp.sum(valid)
-    if axis_name is not None:
-        count = jax.lax.psum(count, axis_name)
-    return jnp.maximum(count, 1)
-
-
-def psum_flat(tree: Any, axis_name: str) -> Any:
-    """`lax.psum` of a whole tree as one flat vector: the same sums, one all-reduce. XLA's
-    gloo collectives (CPU processes) run a tuple all-reduce leaf by leaf, a round trip each:
-    MAPPO's 34 gradient and metric leaves took a 2-process group 2.39 s per update, one
-    vector 1.83 s (docs/benchmarks_distributed.md, "Learner groups")."""
-    flat, unflatten = ravel_pytree(tree)
-    return unflatten(jax.lax.psum(flat, axis_name))
-
-
-def policy_terms(logits: jax.Array, mask: jax.Array, actions: jax.Array
-                 ) -> tuple[jax.Array, jax.Array]:
-    """(log-probability of `actions`, entropy) of the masked categorical policy."""
-    logp_all = jax.nn.log_softmax(masked_logits(logits, mask))
-    logp = jnp.take_along_axis(logp_all, actions[..., None].astype(jnp.int32), -1)[..., 0]
-    probs = jnp.exp(logp_all)
-    entropy = -jnp.sum(jnp.where(mask, probs * logp_all, 0.0), -1)
-    return logp, entropy
-
-
-def ppo_policy_loss(logp: jax.Array, old_logp: jax.Array, advantages: jax.Array,
-                    valid: jax.Array, clip_eps: float, count: jax.Array | None = None
-                    ) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Clipped surrogate loss over valid entries: (loss, approx KL, clip fraction).
-    `count`: the divisor of the means (see `masked_mean`)."""
-    log_ratio = logp - old_logp
-    ratio = jnp.exp(log_ratio)
-    surrogate = jnp.minimum(ratio * advantages,
-                            jnp.clip(ratio, 1.0 - clip_eps, 1.0 + clip_eps) * advantages)
-    loss = -masked_mean(surrogate, valid, count)
-    approx_kl = masked_mean((ratio - 1.0) - log_ratio, valid, count)
-    clip_frac = masked_mean((jnp.abs(ratio - 1.0) > clip_eps).astype(jnp.float32), valid,
-                            count)
-    return loss, approx_kl, clip_frac
-
-
-def value_loss(values: jax.Array, old_values: jax.Array, targets: jax.Array,
-               valid: jax.Array, clip_eps: float, clip: bool = True,
-               count: jax.Array | None = None) -> jax.Array:
-    """0.5 (V - target)^2 over valid entries; with `clip`, the max with the loss of the value
-    clipped to within clip_eps of the rollout's value (the reference's value clipping).
-    `count`: the divisor of the mean (see `masked_mean`)."""
-    loss = jnp.square(values - targets)
-    if clip:
-        clipped = old_values + jnp.clip(values - old_values, -clip_eps, clip_eps)
-        loss = jnp.maximum(loss, jnp.square(clipped - targets))
-    return 0.5 * masked_mean(loss, valid, count)
-
-
-def moments(x: jax.Array, valid: jax.Array, axis_name: str | None = None
-            ) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """(count, mean, variance) of the valid entries of `x` (over all shards of `axis_name`);
-    the count as `valid_count` gives it. On shards, one all-reduce carries the count and both
-    moments: between processes every all-reduce is a round trip that waits for the slowest
-    member, and this one comes before each gradient step's own."""
-    valid = jnp.broadcast_to(valid, x.shape)
-    if axis_name is None:
-        count = valid_count(valid)
-        mean = masked_mean(x, valid, count)
-        return count, mean, masked_mean(jnp.square(x - mean), valid, count)
-    w = valid.astype(x.dtype)
-    sums = jax.lax.psum(jnp.stack([jnp.sum(w), jnp.sum(w * x), jnp.sum(w * jnp.square(x))]),
-                        axis_name)
-    count = jnp.maximum(sums[0], 1.0)
-    mean = sums[1] / count
-    return count, mean, jnp.maximum(sums[2] / count - jnp.square(mean), 0.0)
-
-
-def normalise(x: jax.Array, valid: jax.Array, axis_name: str | None = None) -> jax.Array:
-    """(x - mean) / (std + 1e-8) over the valid entries (of all shards of `axis_name`)."""
-    _, mean, var = moments(x, valid, axis_name)
-    return (x - mean) / (jnp.sqrt(var) + 1e-8)
-
-
-def team_mean(x: jax.Array, valid: jax.Array) -> jax.Array:
-    """Mean over the last (agent) axis of the valid entries; the plain mean where none is."""
-    v = valid.astype(x.dtype)
-    count = jnp.sum(v, -1)
-    return jnp.where(count > 0, jnp.sum(x * v, -1) / jnp.maximum(count, 1.0), jnp.mean(x, -1))
-
-
-# --- the learner -----------------------------------------------------------------------------
 
 
 class PPOLearner:
@@ -240,6 +120,33 @@ class PPOLearner:
     centralised = False  # the critic reads the world state (MAPPO)
     param_groups: tuple[str, ...] = ("net",)  # optimiser groups, each clipped on its own
     frozen_groups: tuple[str, ...] = ()  # parameter groups the PPO optimiser leaves alone
+
+    # What the learner reads and supports, read from the class (config validation in
+    # ued.config, the drivers, the commands) before anything is built; a subclass, built in
+    # or given by import path (`algorithm: module:Class`), overrides what differs.
+    family = "PPO learners"  # how config errors name its kind
+    # Its own config section beside `learner` (None: `learner` only): a top-level config key
+    # and the frozen dataclass of its fields, passed to the class as its fifth argument. A
+    # section TrainConfig has no field for (a learner given by path) is read into
+    # `TrainConfig.algorithm_settings`.
+    settings_section: str | None = None
+    settings_type: type | None = None
+    ppo_settings = True  # reads the `learner` fields only PPO reads (ued.config.PPO_ONLY_FIELDS)
+    # "section.field" settings only this learner (and its subclasses) reads: every other
+    # learner must leave them at their defaults, or the config is refused with `refusal`
+    # (formatted with `algorithm`).
+    own_settings: tuple[str, ...] = ()
+    refusal = ""
+    value_head = True  # has a value head (run.value_error_every, tabx analyse value-error)
+    seeds = True  # several seeds train in one vmapped program (`seeds`)
+    curricula = True  # the UED curricula can train it (ued.method)
+    devices = True  # data parallel over several devices (learner.num_devices, ray.learners)
+
+    @classmethod
+    def validate_settings(cls, settings: Any, learner: LearnerConfig) -> None:
+        """Refuse values of its own settings section (`settings_type`) that cannot work with
+        the `learner` section, by a ConfigError naming the field; the section's field types
+        are checked when the config is read. Nothing to check here."""
 
     def __init__(self, env_config: EnvConfig, ppo: LearnerConfig | None = None,
                  team: str | int = "ally", opponent: str | Controller = "heuristic:medium"):
@@ -568,7 +475,7 @@ class PPOLearner:
         if num_envs % self.ppo.num_minibatches:
             raise ValueError(f"{num_envs} envs do not split into {self.ppo.num_minibatches} "
                              f"minibatches")
-        return _on_devices(self._update_jit, self.learner_devices(num_envs), train_state,
+        return on_devices(self._update_jit, self.learner_devices(num_envs), train_state,
                            levels, key)
 
     def init_seeds(self, keys: jax.Array) -> TrainState:
@@ -597,7 +504,7 @@ class PPOLearner:
         if self._update_seeds_jit is None:
             self._update_seeds_jit = self.jit(jax.vmap(self._update, in_axes=(0, None, 0)),
                                               donate_argnums=0)
-        return _on_devices(self._update_seeds_jit, self.learner_devices(num_envs),
+        return on_devices(self._update_seeds_jit, self.learner_devices(num_envs),
                            train_states, levels, keys)
 
     def _update(self, train_state: TrainState, levels: EnvParams, key: jax.Array
@@ -616,10 +523,10 @@ class PPOLearner:
             # gradient of a minibatch is summed over the devices (`_train`), so every device
             # applies the same update and the parameters stay replicated.
             P = jax.sharding.PartitionSpec
-            by_env, by_time_env = P(_ENVS), P(None, _ENVS)
+            by_env, by_time_env = P(ENVS), P(None, ENVS)
             out = jax.shard_map(
-                functools.partial(self._train, axis_name=_ENVS),
-                mesh=_mesh(devices),
+                functools.partial(self._train, axis_name=ENVS),
+                mesh=env_mesh(devices),
                 in_specs=(P(), P(), by_env, by_time_env, P()),
                 out_specs=(P(), P(), P(), by_time_env, by_time_env), check_vma=False,
             )(params, opt_state, levels, keys, k_train)
@@ -710,9 +617,9 @@ class PPOLearner:
         else:  # each device plays its share of the envs
             P = jax.sharding.PartitionSpec
             records, stats = jax.shard_map(
-                self._score_envs, mesh=_mesh(devices),
-                in_specs=(P(), P(_ENVS), P(None, _ENVS)),
-                out_specs=(P(None, _ENVS), P(None, _ENVS)), check_vma=False,
+                self._score_envs, mesh=env_mesh(devices),
+                in_specs=(P(), P(ENVS), P(None, ENVS)),
+                out_specs=(P(None, ENVS), P(None, ENVS)), check_vma=False,
             )(params, levels, keys)
         return episode_metrics(records), stats
 
@@ -735,46 +642,8 @@ class PPOLearner:
             self._score_jit = self.jit(self._score, static_argnums=3)
         devices = self.learner_devices(levels.reward_mode.shape[0], minibatches=1,
                                        strict=False)
-        return _on_devices(lambda p, lv, k: self._score_jit(p, lv, k, num_steps), devices,
+        return on_devices(lambda p, lv, k: self._score_jit(p, lv, k, num_steps), devices,
                            params, levels, key)
-
-
-_ENVS = "envs"  # the mesh axis data-parallel learners split their envs over
-
-
-def local_devices(wanted: int = 0) -> list[jax.Device]:
-    """This process's devices (of JAX's default backend); ValueError naming
-    `learner.num_devices` if there are fewer than `wanted` (`tabx.devices.available_devices`)."""
-    try:
-        return available_devices(wanted)
-    except ValueError as err:
-        raise ValueError(f"learner.num_devices: {err}") from None
-
-
-@functools.lru_cache(maxsize=8)
-def _mesh(devices: tuple[jax.Device, ...]) -> jax.sharding.Mesh:
-    """The one-axis mesh (`_ENVS`) over `devices`, built once per device set."""
-    return jax.sharding.Mesh(devices, (_ENVS,))
-
-
-def _on_devices(fn: Any, devices: tuple[jax.Device, ...], state: Any, levels: EnvParams,
-                key: jax.Array) -> Any:
-    """`fn(state, levels, key)` with `state` and `key` replicated on `devices` and `levels`
-    split over them by env, the results brought back to the first device (where the caller's
-    arrays live). On one device, `fn` as it is. Over a learner group's devices the same, with
-    the arguments equal in every process and the results whole in every process."""
-    if len(devices) == 1:
-        return fn(state, levels, key)
-    mesh = _mesh(devices)
-    replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
-    by_env = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(_ENVS))
-    if distributed.spans_processes(devices):  # each process places its own share
-        out = fn(distributed.to_global(state, replicated), distributed.to_global(levels, by_env),
-                 distributed.to_global(key, replicated))
-        return distributed.to_local(out, mesh, jax.local_devices()[0])
-    out = fn(jax.device_put(state, replicated), jax.device_put(levels, by_env),
-             jax.device_put(key, replicated))
-    return jax.device_put(out, devices[0])
 
 
 def episode_metrics(records: dict[str, jax.Array]) -> dict[str, jax.Array]:
@@ -804,7 +673,5 @@ def cached_learner(cls: type, env_config: EnvConfig, ppo: LearnerConfig, team: s
     return _cached(cls, env_config, ppo, team, opponent, *settings)
 
 
-__all__ = ["PPOLearner", "RolloutStats", "TrainState", "Transition", "cached_learner",
-           "episode_metrics", "gae", "masked_logits", "masked_mean", "normalise",
-           "local_devices", "policy_terms", "ppo_policy_loss", "team_mean", "valid_count",
-           "value_loss"]
+__all__ = ["START_KEY_STREAM", "PPOLearner", "RolloutStats", "TrainState", "Transition",
+           "cached_learner", "episode_metrics"]
