@@ -7,7 +7,7 @@ call before JAX starts): XLA:CPU runs most of a simulator step's small kernels
 on one thread, so two devices with half the envs each keep both cores busy (docs/benchmarks.md,
 "Both cores"). The split changes where each env is computed, not what: the states are those of
 one device bit for bit; an observation value may differ in its last bit (XLA compiles the split
-program's fusions on their own, tests/test_devices.py).
+program's fusions on their own, tests/ued/test_devices.py).
 """
 
 from __future__ import annotations

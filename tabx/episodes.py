@@ -155,8 +155,8 @@ class _LoopKeys(KeyChain):
 # `tabx eval` (ued.evaluate.play): one key per step, split in four (ally policy, enemy policy,
 # controllers, a fourth unused); the resets draw from the key itself.
 EVAL_KEYS = _BatchKeys(parts=4, policy_parts=(0, 1), controller_part=2, split_start=False)
-# Evaluation suites (workers.evaluator): reset and steps from the two halves of the key; a step's
-# key split in three (the policy, whichever team it plays; the controllers).
+# Evaluation suites (workers.roles.evaluator): reset and steps from the two halves of the
+# key; a step's key split in three (the policy, whichever team it plays; the controllers).
 SUITE_KEYS = _BatchKeys(parts=3, policy_parts=(0, 0), controller_part=1, split_start=True)
 # `tabx rollout`: one key per episode.
 EPISODE_KEYS = _PerEnvKeys(split_controller_key=False)

@@ -91,7 +91,7 @@ def observe(config: EnvConfig, state: EnvState, params: EnvParams) -> jax.Array:
     Own features, the visibility mask and zone features are computed here; the rows, with the
     other units in each viewer's cyclic order, are assembled by one primitive
     (`tabx.observe_kernel`: a native kernel on the CPU, XLA elsewhere, the same bits).
-    tests/test_observe_fast.py checks against a per-viewer reference.
+    tests/tabx/test_observe_fast.py checks against a per-viewer reference.
     """
     n = config.num_units
     u = params.units

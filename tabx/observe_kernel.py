@@ -3,7 +3,7 @@ cyclic order, masked by what it sees, between its own features and its zone feat
 
 On the CPU it runs the native kernel tabx/native/observe.cc (built once per machine,
 `tabx.native_lib`); everywhere else, and on the CPU when that kernel is unavailable or
-`TABX_NATIVE=0`, the XLA version below. Both give the same bits (tests/test_observe_kernel.py).
+`TABX_NATIVE=0`, the XLA version below. Both give the same bits (tests/tabx/test_observe_kernel.py).
 
 Why a kernel: XLA:CPU writes the cyclic order as 2N slices and a concatenate per step, each a
 small kernel copying a few floats per env; at 5v5 they were over half of a random-action step

@@ -6,7 +6,7 @@ backend:
     import jax
 
 Importing `tabx` applies nothing; the `tabx` command (`tabx_ued.cli.main`), the Ray actors
-(`workers.actors`), the profiler's child process and the test session call `apply()`.
+(`workers.ray.actors`), the profiler's child process and the test session call `apply()`.
 
 1. On jaxlib 0.10 the CPU compiler routes small reductions through its experimental YNN
    fusion, which is 1.5-2x slower for the (envs, units, units) reductions of this simulator

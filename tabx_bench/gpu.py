@@ -179,7 +179,7 @@ def run_trials(concurrent: int, out: Path, work: Path, num_envs: int, num_steps:
 
 def trial_env(cache_dir: str) -> dict[str, str]:
     """The trials' environment: no GPU memory preallocation (trials share the GPU, as a
-    sweep's do: workers.sweep.worker_env) and one compilation cache, so that only the first
+    sweep's do: workers.sweep.tune.worker_env) and one compilation cache, so that only the first
     trial compiles."""
     env = dict(os.environ)
     env["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"

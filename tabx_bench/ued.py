@@ -44,7 +44,7 @@ from tabx.files import atomic_write_text
 from tabx_bench.arguments import int_at_least, int_list, seconds_up_to
 from ued.config import ConfigError, TrainConfig, load_config
 from ued.experiment import learner_for
-from workers.learner import LearnerWorker
+from workers.roles.learner import LearnerWorker
 from workers.ued_step import UEDRun
 
 DEFAULT_CONFIG = "ued/quickstart"  # a shipped config (ued.config_files)
@@ -156,11 +156,11 @@ class RayStepper:
     `ray.deterministic` the local driver's schedule over the actors (the local work)."""
 
     def __init__(self, ray: Any, config: TrainConfig, stream: TextIO):
-        from workers.actor_manager import ActorDeaths, ActorManager
-        from workers.ray_async import AsyncRun
-        from workers.ray_handles import ExplorerPool, RemoteLearner
-        from workers.ray_restarts import RemoteService
-        from workers.ray_start import start_workers
+        from workers.ray.actor_manager import ActorDeaths, ActorManager
+        from workers.ray.async_schedule import AsyncRun
+        from workers.ray.handles import ExplorerPool, RemoteLearner
+        from workers.ray.restarts import RemoteService
+        from workers.ray.start import start_workers
 
         self.ray, self.config = ray, config
         self.workers = start_workers(ray, config, stream)
@@ -177,7 +177,7 @@ class RayStepper:
         ray.get(self.workers.learner.init.remote(k_init))
         self.learner = RemoteLearner(ray, self.workers.learner, actors)
         if continuous:
-            from workers.continuous import ContinuousRun
+            from workers.ray.continuous import ContinuousRun
 
             self.schedule = ContinuousRun(ray, config, self.run, self.learner, self.workers,
                                           service)
@@ -209,7 +209,7 @@ class RayStepper:
         self.ray.get(self.workers.learner.version.remote())
 
     def close(self) -> None:
-        from workers.learner_group import LearnerGroup
+        from workers.ray.learner_group import LearnerGroup
 
         for actor in self.workers.all():
             actor.kill(self.ray) if isinstance(actor, LearnerGroup) else self.ray.kill(actor)
@@ -271,7 +271,7 @@ def bench_async(ray: Any, config: TrainConfig, warmup: int, steps: int,
                 stream: TextIO) -> UEDBenchResult:
     """The asynchronous schedule on fresh actors, timed from the first timed step until every
     batch it issued is committed."""
-    from workers.ray_stats import RayStats
+    from workers.ray.stats import RayStats
 
     stepper = RayStepper(ray, config, stream)
     try:
@@ -295,7 +295,7 @@ def run_ued_bench(config: TrainConfig, explorers: list[int], warmup: int, steps:
     `restarts` list, an Explorer's restart is timed too (compilation cache off, then on) and
     appended to it. `learners`: the asynchronous settings run with each learner-group size
     (`ray.learners`)."""
-    from workers.ray_start import connect
+    from workers.ray.start import connect
 
     stream = sys.stderr if stream is None else stream
     results: list[UEDBenchResult] = []
@@ -383,8 +383,8 @@ def bench_restart(ray: Any, config: TrainConfig, compile_cache: bool,
     session's, whose programs are compiled already: the same steps, without the compile)."""
     import tempfile
 
-    from workers.actors import ExplorerActor, LevelServiceActor, ParamsRef
-    from workers.ray_start import actor_env
+    from workers.ray.actors import ExplorerActor, LevelServiceActor, ParamsRef
+    from workers.ray.start import actor_env
 
     with tempfile.TemporaryDirectory(prefix="tabx-restart-cache-") as cache:
         env = actor_env(False)

@@ -6,7 +6,7 @@ driver can tell) and returns what a real one returns: episode metrics and `learn
 scores and best returns (float64). It pulls the policy parameters of each new version, as a
 real Explorer does. The learner is a stand-in too (`--learner-s` per replay step, the replayed
 ids and their scores back). Everything else is real: the continuous schedule's driver
-(`workers.continuous.ContinuousRun`), the `LevelServiceActor` (it inserts every batch) and its
+(`workers.ray.continuous.ContinuousRun`), the `LevelServiceActor` (it inserts every batch) and its
 commit log, fsynced in a temporary folder; the stand-ins make each batch's fresh levels with
 the config's real generator, as Explorers do on the continuous schedule.
 
@@ -64,7 +64,7 @@ class SleepExplorer:
     def score_fresh(self, params: Any, levels_key: Any, n: int, key: Any, score: str
                     ) -> tuple[dict[str, Any], np.ndarray, np.ndarray, Any]:
         """`ExplorerActor.score_fresh`: the levels made here (real generator), then a sleep."""
-        from workers.level_service import to_host
+        from workers.roles.level_service import to_host
 
         levels = to_host(self.generator.sample(levels_key, n))
         return (*self.score_levels(params, levels, key, score), levels)
@@ -147,12 +147,12 @@ class SimResult:
 def simulate(ray: Any, config: TrainConfig, explorers: int, batch_s: float, learner_s: float,
              seconds: float, per_process: int = 8, param_mb: float = 1.0) -> SimResult:
     """One setting: `explorers` stand-ins, timed for `seconds` after the buffer filled."""
-    from workers.actor_manager import ActorDeaths, ActorManager
-    from workers.actors import LevelServiceActor
-    from workers.continuous import ContinuousRun
-    from workers.ray_handles import ExplorerPool, RemoteLearner
-    from workers.ray_restarts import RemoteService
-    from workers.ray_start import Workers, actor_env
+    from workers.ray.actor_manager import ActorDeaths, ActorManager
+    from workers.ray.actors import LevelServiceActor
+    from workers.ray.continuous import ContinuousRun
+    from workers.ray.handles import ExplorerPool, RemoteLearner
+    from workers.ray.restarts import RemoteService
+    from workers.ray.start import Workers, actor_env
     from workers.ued_step import UEDRun
 
     # The buffer's fill is not what is measured: replay from the first committed batch.
@@ -243,7 +243,7 @@ def run_simulation(config: TrainConfig, explorers: list[int], batch_s: float, le
     """Every Explorer count in turn, on a Ray of this machine (or `ray.address`'s)."""
     import sys
 
-    from workers.ray_start import connect
+    from workers.ray.start import connect
 
     stream = sys.stderr if stream is None else stream
     ray, connected_here = connect(config.ray)

@@ -5,7 +5,7 @@
     tabx runs check RUN_DIR      every checkpoint and level snapshot: intact or damaged
     tabx runs show RUN_DIR       the config, and what produced each checkpoint (its metadata)
 
-`status` and `buffer` read `RUN_DIR/ray.json` (`workers.ray_live`); `buffer` joins the run's
+`status` and `buffer` read `RUN_DIR/ray.json` (`workers.ray.live`); `buffer` joins the run's
 cluster. `check` (`workers.resume`) and `show` (`ued.run_folder.run_summary`) read any run
 folder and change nothing.
 """
@@ -18,7 +18,7 @@ from tabx.errors import UserError
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    from workers.ray_live import read_record, status_text
+    from workers.ray.live import read_record, status_text
 
     print(status_text(args.run_dir, read_record(args.run_dir)))
     return 0
@@ -26,7 +26,7 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 def cmd_buffer(args: argparse.Namespace) -> int:
     from tabx_ued.buffer_commands import summary
-    from workers.ray_live import live_buffer
+    from workers.ray.live import live_buffer
 
     buffer, size = live_buffer(args.run_dir)
     print(summary(buffer, f"{args.run_dir} (live)", size))

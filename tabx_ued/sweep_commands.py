@@ -6,8 +6,8 @@
     tabx sweep report sweeps/smoke_ued                       # its tables and learning curves
     tabx sweep report sweeps/smoke_ued --interval t95        # 95 % intervals, not s.e.
 
-The sweep file is `ued.sweep_spec`'s, the scheduling `workers.sweep`'s (Ray Tune), the report
-`ued.sweep_report`'s; docs/experiments.md walks from one run to the paper's table.
+The sweep file is `workers.sweep.spec`'s, the scheduling `workers.sweep.tune`'s (Ray Tune),
+the report `workers.sweep.report`'s; docs/experiments.md walks from one run to the paper's table.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from ued.errors import ConfigError
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from ued.sweep_spec import read_sweep_spec, resources_from
+    from workers.sweep.spec import read_sweep_spec, resources_from
 
     if args.num_cpus is not None and args.num_cpus < 1:
         raise ConfigError(f"--num-cpus: expected an integer >= 1 (the CPUs of the Ray started "
@@ -31,7 +31,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     spec = read_sweep_spec(args.spec, args.overrides)  # every error before anything starts
     folder = spec.folder(args.dir)
     if args.resume and not args.overrides:
-        from ued.sweep_folder import SweepFolder
+        from workers.sweep.folder import SweepFolder
 
         sweep = SweepFolder(folder)
         started = sweep.overrides()
@@ -45,7 +45,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     if given:
         spec = dataclasses.replace(spec, resources=resources_from(
             given, spec.resources, names={"cpus": "--cpus", "gpus": "--gpus"}))
-    from workers.sweep import run_sweep
+    from workers.sweep.tune import run_sweep
 
     outcome = run_sweep(spec, folder,
                         resume=args.resume, address=args.address, num_cpus=args.num_cpus,
@@ -60,7 +60,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 
 def cmd_sweep_report(args: argparse.Namespace) -> int:
-    from ued.sweep_report import write_report
+    from workers.sweep.report import write_report
 
     try:
         written = write_report(args.sweep_dir, out=args.out, partial=args.partial,

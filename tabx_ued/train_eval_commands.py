@@ -13,8 +13,8 @@
 A side of `tabx eval` (`--ally`, `--enemy`) is a run folder or a controller
 (`heuristic[:TIER]`, `random`, `idle`); the positional RUN_DIR plays the team it was trained
 for, and the team nobody names plays the run's training opponent. `--suite` evaluates the
-run zero-shot on every entry of an evaluation suite (`ued.suites`, `workers.evaluator`);
-with `--ray` on a Ray actor (`workers.ray_eval`), here or on a cluster.
+run zero-shot on every entry of an evaluation suite (`ued.suites`, `workers.roles.evaluator`);
+with `--ray` on a Ray actor (`workers.ray.remote_eval`), here or on a cluster.
 Training goes through `workers.train.train`, which picks the driver.
 """
 
@@ -263,7 +263,7 @@ def _eval_suite(args: argparse.Namespace) -> int:
     from ued.config import ConfigError
     from ued.run_folder import load_policy
     from ued.suites import load_suite
-    from workers.evaluator import Evaluator, format_table, to_json
+    from workers.roles.evaluator import Evaluator, format_table, to_json
 
     clash = [flag for flag, value in (("--scenario", args.scenario), ("--ally", args.ally),
                                       ("--enemy", args.enemy), ("--gif", args.gif)) if value]
@@ -277,7 +277,7 @@ def _eval_suite(args: argparse.Namespace) -> int:
         profile = args.profile or policy.config.env.profile
         key = jax.random.key(args.seed)
         if args.ray:
-            from workers.ray_eval import evaluate_on_ray
+            from workers.ray.remote_eval import evaluate_on_ray
 
             result = evaluate_on_ray(policy, suite, key, episodes=args.episodes,
                                      greedy=args.greedy, address=args.address or "",

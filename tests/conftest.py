@@ -15,7 +15,7 @@ from tabx import xla_flags
 # compiling it again (the Ray tests' actors each compiled the same learner and Explorer
 # programs: about half of their time). A loaded program is the one XLA compiled, so results
 # are the same bit for bit, and tabx.compile_counter counts a load as a compilation, so the
-# no-recompile tests count the same. tests/test_compile_cache.py points the cache at folders
+# no-recompile tests count the same. tests/ued/test_compile_cache.py points the cache at folders
 # of its own.
 # The suite runs in two pytest-xdist worker processes (pyproject.toml): the controller makes
 # the folder, and its workers, which inherit its environment, share it.

@@ -21,7 +21,7 @@ time-out goes to the higher health ratio, ties to the enemy), mean undiscounted 
 mean episode length with 95 % normal intervals.
 
 Zero-shot evaluation on a whole suite of held-out scenarios and opponents (`tabx eval RUN_DIR
---suite NAME`) is `workers.evaluator.Evaluator` on `ued.suites` files (docs/evaluation.md); it
+--suite NAME`) is `workers.roles.evaluator.Evaluator` on `ued.suites` files (docs/evaluation.md); it
 shares `wilson` and `mean_ci` with this module.
 """
 

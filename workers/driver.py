@@ -6,7 +6,7 @@ Explorers and Evaluators it wires together. Two implementations:
 
     workers.local.LocalDriver     every worker in this process, sequentially (the default;
                                   Ray is not imported)
-    workers.ray_driver.RayDriver  the workers as Ray actors, on this machine or a cluster
+    workers.ray.driver.RayDriver  the workers as Ray actors, on this machine or a cluster
 
 Both write the same run folder (checkpoints, level snapshots, TensorBoard events), so a run
 started by one can be evaluated, plotted and resumed with the same commands.

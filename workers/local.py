@@ -31,11 +31,11 @@ import numpy as np
 from ued.config import TrainConfig
 from ued.experiment import learner_for, scenario_levels, seed_keys, split_seed_keys, training_levels
 from ued.learners.ppo import PPOLearner
-from ued.progress import logged_scalars
 from ued.run_folder import seed_dir
 from ued.tensorboard import SummaryWriter
 from workers.driver import Callback, Driver
-from workers.learner import LearnerWorker
+from workers.progress import logged_scalars
+from workers.roles.learner import LearnerWorker
 from workers.training_loop import Output, Report, Runner, train_loop
 from workers.ued_step import UEDRun, branch_text
 

@@ -33,7 +33,7 @@ from ued.checkpoint import CheckpointError, Checkpoints
 from ued.config import ConfigError, TrainConfig
 from ued.errors import gist
 from ued.run_folder import CHECKPOINT_DIR, LEVELS_DIR, SET_ASIDE_DIR
-from workers.level_service import SNAPSHOT_FILES
+from workers.roles.level_service import SNAPSHOT_FILES
 
 
 @dataclass(frozen=True)

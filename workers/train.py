@@ -32,11 +32,11 @@ from ued.run_folder import (
     open_checkpoints,
     read_run_config,
 )
-from workers.continuous import ContinuousRun
 from workers.driver import Callback, Driver
 from workers.local import LocalDriver
-from workers.ray_driver import RayDriver
-from workers.ray_start import keep_driver_off_accelerators
+from workers.ray.continuous import ContinuousRun
+from workers.ray.driver import RayDriver
+from workers.ray.start import keep_driver_off_accelerators
 from workers.resume import step_intact
 
 

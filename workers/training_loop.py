@@ -18,7 +18,7 @@
 A `Runner` says what differs: what the train state is and where it lives, what one step does,
 what is logged, what is saved beside a checkpoint. The runners are a plain MARL run and a
 multi-seed one (`workers.local`), a UED run in this process (`workers.local`) and a UED run
-over Ray actors (`workers.ray_driver`). A checkpoint stores the train state and the key after
+over Ray actors (`workers.ray.driver`). A checkpoint stores the train state and the key after
 a step, so a resumed run continues the key chain of an uninterrupted one.
 """
 
@@ -37,10 +37,10 @@ import numpy as np
 
 from tabx.errors import UserError
 from ued.config import TrainConfig
-from ued.progress import Played, Progress, ThroughputClock, log_update
 from ued.run_folder import EVENTS_DIR, checkpoint_metadata, open_checkpoints
 from ued.tensorboard import SummaryWriter
 from workers.driver import Callback
+from workers.progress import Played, Progress, ThroughputClock, log_update
 from workers.resume import restore_intact
 
 

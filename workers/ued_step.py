@@ -20,7 +20,7 @@ run is its `Schedule`: by default all of it here and now (the local driver, and 
 driver's deterministic mode, whose workers are stand-ins that call Ray actors); the Ray
 driver's asynchronous schedule hands the steps that only score levels to Explorers and commits
 their results when they arrive. Its
-continuous schedule (`workers.continuous`) departs from these steps for Robust PLR, ACCEL and
+continuous schedule (`workers.ray.continuous`) departs from these steps for Robust PLR, ACCEL and
 SFL: Explorers score without pause (SFL: the learnable set is refreshed as scored batches come
 in, not every sfl_update_freq steps).
 
@@ -56,11 +56,11 @@ from ued.registry import curriculum_for
 from ued.run_folder import LEVELS_DIR
 from ued.suites import load_suite
 from ued.tensorboard import SummaryWriter
-from workers.evaluator import Evaluator
-from workers.explorer import Explorer
-from workers.learner import LearnerWorker
-from workers.level_service import LevelService, sfl_split, to_device, to_host
 from workers.resume import state_problem
+from workers.roles.evaluator import Evaluator
+from workers.roles.explorer import Explorer
+from workers.roles.learner import LearnerWorker
+from workers.roles.level_service import LevelService, sfl_split, to_device, to_host
 
 T = TypeVar("T")
 
@@ -134,7 +134,7 @@ class UEDRun:
     @classmethod
     def local(cls, config: TrainConfig) -> tuple[UEDRun, PPOLearner]:
         """A run over workers built in this process, and its learner (to init or restore the
-        train state that a `workers.learner.LearnerWorker` holds)."""
+        train state that a `workers.roles.learner.LearnerWorker` holds)."""
         ppo_learner, service, explorer, evaluators = local_workers(config)
         return cls(config, service, explorer, evaluators), ppo_learner
 

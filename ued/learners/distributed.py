@@ -22,7 +22,7 @@ all the devices makes: so 2 processes x 1 device compute what 1 process x 2 devi
 Failures: a process that dies (SIGKILL, OOM) stops answering the coordinator's heartbeats;
 after `heartbeat_timeout_s` the coordination service ends the other processes, whose
 collective would otherwise wait for ever. A group is never repaired in place: whoever runs
-it starts a new one (workers/learner_group.py restarts a Ray learner group from the last
+it starts a new one (workers/ray/learner_group.py restarts a Ray learner group from the last
 checkpoint).
 """
 

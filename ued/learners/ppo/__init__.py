@@ -1,7 +1,7 @@
 """Recurrent PPO for TABX teams, in three parts (as Brax splits its PPO):
 
 - `ued.learners.ppo.losses`: GAE, the clipped policy loss, the value loss and the masked
-  statistics they use, as pure functions of arrays (tests/test_ppo_losses.py);
+  statistics they use, as pure functions of arrays (tests/ued/test_ppo_losses.py);
 - `ued.learners.ppo.devices`: the data-parallel placement of an update's envs over devices;
 - `ued.learners.ppo.train`: `PPOLearner`, the rollout and the jitted update, on which MAPPO
   (ued.learners.mappo), IPPO (ued.learners.ippo), MAPPO+RND (ued.learners.rnd) and the

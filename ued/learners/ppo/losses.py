@@ -1,5 +1,5 @@
 """The PPO loss terms and GAE: pure functions of arrays (no learner, no state), unit-tested
-on their own in tests/test_ppo_losses.py.
+on their own in tests/ued/test_ppo_losses.py.
 
 Masks: an entry is *valid* where its agent's unit is alive at the observation; the means
 divide by the number of valid entries, or by a `count` given for all data-parallel shards
