@@ -14,6 +14,7 @@ from typing import Any
 
 import jax
 import pytest
+from test_ray_schedule import wire_schedule
 from test_ued_train import ued_config
 
 exceptions = pytest.importorskip("ray.exceptions")
@@ -135,10 +136,7 @@ def test_every_error_ray_raises_for_a_lost_actor_or_node_is_a_loss_and_no_other(
 def test_an_explorer_killed_by_the_memory_monitor_restarts_and_its_batch_is_reissued():
     from workers.ray.actors import ExplorerActor, LearnerActor, LevelServiceActor
     from workers.ray.async_schedule import AsyncRun
-    from workers.ray.handles import ExplorerPool, RemoteLearner
-    from workers.ray.restarts import RemoteService
     from workers.ray.start import Workers
-    from workers.ued_step import UEDRun
 
     config = ued_config("robust_plr", **{
         "ray.enabled": "true", "ray.explorers": 1, "ray.max_inflight": 2,
@@ -151,13 +149,7 @@ def test_an_explorer_killed_by_the_memory_monitor_restarts_and_its_batch_is_reis
                       Handle(learner_actor, "1e" * 14), [Handle(explorer, "e0" * 14)], None, 0.0)
     learner_actor.init(jax.random.key(0))
     out = io.StringIO()
-    manager = ActorManager(ray, ActorDeaths(out))
-    workers.register(manager)
-    service = RemoteService(ray, workers.service, manager)
-    run = UEDRun(config, service, ExplorerPool(ray, workers.scorers(), workers.scorer_names(),
-                                               manager), [])
-    schedule = AsyncRun(ray, config, run, RemoteLearner(ray, workers.learner, manager), workers,
-                        service)
+    schedule, service = wire_schedule(AsyncRun, config, ray, workers, out)
     key = jax.random.key(config.seed)
     branches = []
     for step in range(8):
@@ -329,10 +321,7 @@ def continuous_run_with_deaths(config: Any, tmp_path: Any, scoring_call: str,
     RemoteService, the deaths' log)."""
     from workers.ray.actors import ExplorerActor, LearnerActor
     from workers.ray.continuous import ContinuousRun
-    from workers.ray.handles import ExplorerPool, RemoteLearner
-    from workers.ray.restarts import RemoteService
     from workers.ray.start import Workers
-    from workers.ued_step import UEDRun
 
     ray = FakeRay()
     learner_actor = LearnerActor(config)
@@ -344,14 +333,7 @@ def continuous_run_with_deaths(config: Any, tmp_path: Any, scoring_call: str,
                       [Handle(explorer, "e0" * 14)], None, 0.0)
     learner_actor.init(jax.random.key(0))
     out = io.StringIO()
-    manager = ActorManager(ray, ActorDeaths(out))
-    workers.register(manager)
-    service = RemoteService(ray, workers.service, manager)
-    run = UEDRun(config, service, ExplorerPool(ray, workers.scorers(), workers.scorer_names(),
-                                               manager), [])
-    schedule = ContinuousRun(ray, config, run, RemoteLearner(ray, workers.learner, manager),
-                             workers,
-                             service)
+    schedule, service = wire_schedule(ContinuousRun, config, ray, workers, out)
     key = jax.random.key(config.seed)
     for step in range(steps):
         key, k_step = jax.random.split(key)

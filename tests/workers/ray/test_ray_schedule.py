@@ -63,6 +63,21 @@ class SlowRay:
         return refs[:num_returns], refs[num_returns:]
 
 
+def wire_schedule(schedule_class: type, config: Any, ray: Any, workers: Workers,
+                  deaths: Any = None) -> tuple[Any, RemoteService]:
+    """`schedule_class` over `workers` (their learner initialised) as the Ray driver wires it:
+    one ActorManager (its deaths written to `deaths`), the level service, the UED run with its
+    Explorer pool. Returns (schedule, service)."""
+    manager = ActorManager(ray, ActorDeaths(deaths))
+    workers.register(manager)
+    service = RemoteService(ray, workers.service, manager)
+    run = UEDRun(config, service, ExplorerPool(ray, workers.scorers(), workers.scorer_names(),
+                                               manager), [])
+    schedule = schedule_class(ray, config, run, RemoteLearner(ray, workers.learner, manager),
+                              workers, service=service)
+    return schedule, service
+
+
 def run_schedule(schedule_class: type, config: Any, ray: SlowRay, steps: int,
                  before_drain: Any = None, after_step: Any = None):
     """`steps` steps of `schedule_class` over in-process actors (one learner, the config's
@@ -77,14 +92,7 @@ def run_schedule(schedule_class: type, config: Any, ray: SlowRay, steps: int,
     workers = Workers(Actor(LevelServiceActor(config)), Actor(learner_actor),
                       [Actor(a) for a in explorer_actors], None, 0.0)
     learner_actor.init(jax.random.key(0))
-    manager = ActorManager(ray, ActorDeaths(None))
-    workers.register(manager)
-    service = RemoteService(ray, workers.service, manager)
-    run = UEDRun(config, service, ExplorerPool(ray, workers.scorers(), workers.scorer_names(),
-                                               manager), [])
-    schedule = schedule_class(ray, config, run, RemoteLearner(ray, workers.learner, manager),
-                              workers,
-                              service=service)
+    schedule, _ = wire_schedule(schedule_class, config, ray, workers)
     key = jax.random.key(config.seed)
     branches = []
     for step in range(steps):
@@ -282,7 +290,7 @@ def test_continuous_sfl_never_blocks_the_learner_and_keeps_the_top_k_committed(
     # (late: re-scored). PromptRay: results are committed at every step and the learnable set
     # serves the learner. Either way every scored batch is committed once, and the learnable
     # set is the top sfl_top_k of the newest sfl_num_batches batches committed.
-    from workers.level_service import LevelService
+    from workers.roles.level_service import LevelService
 
     committed, served = [], []
     add, batch = LevelService.add_learnable, LevelService.sfl_batch
