@@ -20,7 +20,7 @@ XLA:CPU's YNNPACK kernels for their matrix products (`xla_cpu_experimental_ynn_f
 which `tabx.xla_flags` turns off process-wide because its reductions are slow for the
 simulator): these use the CPU's AMX units for bfloat16 inputs, about 3x faster than XLA's own
 dot kernels on the learners' small products. In float32 they were 2-4 % slower on whole updates,
-so float32 learners keep XLA's defaults (docs/learners.md, "Matmul precision").
+so float32 learners keep XLA's defaults (docs/learners_internals.md, "Matmul precision").
 
 The options are CPU compiler options: on any other backend, and on jaxlib versions they were
 not measured on (an unknown option is an error), both are plain `jax.jit`. Set

@@ -15,7 +15,7 @@ Importing `tabx` applies nothing; the `tabx` command (`tabx_ued.cli.main`), the 
    learner can split its envs over the cores as data-parallel shards (ued/learners/ppo/train.py
    `learner_devices`): an update is a long chain of small kernels that one device runs on
    about 1.25 cores, while two devices with half the envs each run side by side (IPPO on
-   crossfire 1.3x faster on 2 cores, docs/learners.md, "Data parallel over devices").
+   crossfire 1.3x faster on 2 cores, docs/learners_internals.md, "Data parallel over devices").
    Programs that do not ask for the other devices run on the first one, as fast as on a
    single device. Only affects JAX's CPU platform.
 

@@ -173,7 +173,7 @@ def read_run_config(run_dir: str | Path) -> TrainConfig:
     if isinstance(data, dict) and isinstance(data.get("learner"), dict):
         # A resolved config lists every field; one without `matmul_dtype` was written before
         # that field existed, when the networks multiplied in float32: resume and evaluate it
-        # that way (docs/learners.md, "Matmul precision").
+        # that way (docs/learners_internals.md, "Matmul precision").
         data["learner"].setdefault("matmul_dtype", "float32")
     return config_from_dict(data, source=str(path))
 

@@ -1,5 +1,5 @@
-"""Differential test against recorded reference episodes (docs/heuristics.md, "The reference
-code beside ours"): each recorded state is given to our scripted policy and to our step.
+"""Differential test against recorded reference episodes (docs/heuristics_reference.md, "The
+reference code beside ours"): each recorded state is given to our scripted policy and to our step.
 
     python docs/bench/reference_differential_2026-11-27.py SCENARIO RECORD.npz [PROFILE]
 

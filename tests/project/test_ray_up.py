@@ -1,8 +1,8 @@
 """`ray up` / `ray exec` / `ray submit` / `ray down` with cluster-local.yaml on this machine: a
 head on 127.0.0.1 and a worker node on 127.0.0.2, reached over ssh. Opt-in (slow) and only where
 this machine has what the launcher needs: an ssh server that lets the current user in on
-127.0.0.1 and 127.0.0.2 with ~/.ssh/id_ed25519 and no password, and rsync (docs/distributed.md,
-"A cluster with ray up", says how to set that up).
+127.0.0.1 and 127.0.0.2 with ~/.ssh/id_ed25519 and no password, and rsync
+(docs/distributed_operations.md, "A cluster with ray up", says how to set that up).
 
 The launcher file is cluster-local.yaml with its placeholders filled for the loopback addresses
 and its setup command left out: both nodes are this machine, where the project is installed

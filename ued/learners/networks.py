@@ -21,7 +21,7 @@ activations, the weights, and in the backward pass the output gradients) to bflo
 accumulate in float32, as JAX's default precision does on TPUs; everything else (LayerNorm,
 the GRU gates, weight gradients, the parameters and the optimiser) stays float32. On a CPU with
 AMX, XLA:CPU's YNNPACK dot kernels run these products about 3x faster than float32 ones
-(`learner_jit`, docs/learners.md "Matmul precision").
+(`learner_jit`, docs/learners_internals.md "Matmul precision").
 """
 
 from __future__ import annotations
@@ -182,7 +182,7 @@ def _layer_norm_bwd(res, g):
     """dx = rstd (dy - mean(dy) - y mean(dy y)) with dy = g scale, the row means as
     matrix-vector products: autodiff of the forward made two row reductions of the
     broadcast statistics, each an unfused reduce-window and a reduce on XLA:CPU (IPPO updates
-    3-5 % faster this way; docs/learners.md, "Performance")."""
+    3-5 % faster this way; docs/learners_internals.md, "Performance")."""
     y, rstd, scale = res
     rows = tuple(range(g.ndim - 1))
     dy = g * scale

@@ -21,7 +21,7 @@ Hyperparameters"; the reference's `mappo_rnn_rnd.py`, docs/differences.md):
 The rollout computes r_i with the predictor of the rollout (before this update trains it), so
 a state seen repeatedly earns less and less. Differences from the reference: each critic tower
 carries its own hidden state, reset at episode boundaries (the reference feeds the intrinsic
-GRU the extrinsic GRU's output state and carries one hidden state); see docs/learners.md.
+GRU the extrinsic GRU's output state and carries one hidden state); see docs/learners_algorithms.md.
 
 `RolloutStats` (what UED scores read) carry the extrinsic value and the combined advantage.
 """
