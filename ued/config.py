@@ -15,8 +15,9 @@ A config has six sections and top-level keys (`seed`, or `seeds` for several):
 Every field has a default (the paper's table "IPPO and MAPPO hyperparameters" and the
 reference's defaults; docs/differences.md lists where we differ), so a file only lists what
 differs. Which learner and curriculum names exist is `ued.registry`'s; which sections and
-fields a learner reads, its class's (ued.learners.ppo.PPOLearner). A learner given by path with
-a section of its own (`settings_section`) reads it from the top-level key of that name.
+fields a learner reads, its class's (ued.learners.ppo.PPOLearner). A learner or a curriculum
+given by path with a section of its own (`settings_section` of its class) reads it from the
+top-level key of that name, validated as a built-in section is.
 
 `key=value` overrides address a field as `section.field` (`learner.lr=1e-3`) or by its bare
 name when that is unambiguous (`lr=1e-3`); values are read as YAML. Unknown keys, wrong types
@@ -434,6 +435,9 @@ class TrainConfig:
     # config unpickles in a process that has not imported the learner's module yet.
     algorithm_settings: tuple[tuple[str, Any], ...] = field(
         default=(), metadata={"config_key": False})
+    # The same for the curriculum's own section (`ued.curricula.Curriculum.settings_section`).
+    method_settings: tuple[tuple[str, Any], ...] = field(
+        default=(), metadata={"config_key": False})
 
     def validate(self) -> TrainConfig:
         learner = learner_class(self.algorithm)
@@ -442,6 +446,7 @@ class TrainConfig:
         self._validate_algorithm_settings()
         self.run.validate()
         self.ued.validate()
+        self._validate_method_settings()
         self.levels.validate()
         self.ray.validate()
         if self.ray.enabled and self.ray.learners > 1:
@@ -547,6 +552,27 @@ class TrainConfig:
             return getattr(self, cls.settings_section)
         return cls.settings_type(**dict(self.algorithm_settings))
 
+    def _validate_method_settings(self) -> None:
+        """The curriculum's own settings, by its class's `validate_settings`; settings kept for
+        a method that reads none (a config changed in code) are a mistake."""
+        settings = self.curriculum_settings()
+        if settings is None:
+            _check(not self.method_settings, "ued.method",
+                   f"{self.ued.method} reads no settings section of its own, but the config "
+                   f"holds {', '.join(name for name, _ in self.method_settings)}")
+            return
+        curriculum_class(self.ued.method).validate_settings(settings, self.ued)
+
+    def curriculum_settings(self) -> Any:
+        """The curriculum's own settings section (`settings_type` of its class, built from
+        `method_settings`), or None (no curriculum, or one without a section)."""
+        if not self.ued.enabled:
+            return None
+        cls = curriculum_class(self.ued.method)
+        if cls.settings_type is None:
+            return None
+        return cls.settings_type(**dict(self.method_settings))
+
     @property
     def run_name(self) -> str:
         if self.run.name:
@@ -560,12 +586,13 @@ class TrainConfig:
 
     def to_dict(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)
-        del out["algorithm_settings"]
-        own = _own_section(self.algorithm)
-        if own is not None:  # under its own key, every field written out
-            settings = self.learner_settings()
-            out[own[0]] = {f.name: list(v) if isinstance(v := getattr(settings, f.name), tuple)
-                           else v for f in dataclasses.fields(settings)}
+        del out["algorithm_settings"], out["method_settings"]
+        built = {"algorithm_settings": self.learner_settings,
+                 "method_settings": self.curriculum_settings}
+        for kept, (section, _) in _own_sections(self.algorithm, self.ued.method).items():
+            settings = built[kept]()  # under its own key, every field written out
+            out[section] = {f.name: list(v) if isinstance(v := getattr(settings, f.name), tuple)
+                            else v for f in dataclasses.fields(settings)}
         out["env"]["scenario"] = list(self.env.scenario)
         if self.seeds:
             out["seeds"] = list(self.seeds)
@@ -680,16 +707,16 @@ def config_from_dict(data: Any, source: str = "config") -> TrainConfig:
     """A validated TrainConfig from a parsed YAML mapping, its `run.name` filled in
     (`fill_run_name`); errors name `source`."""
     try:
-        own = _own_section(data.get("algorithm") if isinstance(data, Mapping) else None)
-        settings = ()
-        if own is not None:  # a by-path learner's section: read with its own fields
+        own = _own_sections(*_named_classes(data)) if isinstance(data, Mapping) else {}
+        settings = {}
+        for kept, (section, kind) in own.items():  # read with their own fields
             data = dict(data)
-            values = _build(own[1], data.pop(own[0], None), own[0])
-            settings = tuple((f.name, getattr(values, f.name))
-                             for f in dataclasses.fields(values))
+            values = _build(kind, data.pop(section, None), section)
+            settings[kept] = tuple((f.name, getattr(values, f.name))
+                                   for f in dataclasses.fields(values))
         config = _build(TrainConfig, data, "")
         if settings:
-            config = dataclasses.replace(config, algorithm_settings=settings)
+            config = dataclasses.replace(config, **settings)
         return fill_run_name(config).validate()
     except ConfigError as err:
         raise ConfigError(f"{source}: {err}") from None
@@ -748,26 +775,55 @@ def _sections() -> frozenset[str]:
                      if dataclasses.is_dataclass(hints[f.name]))
 
 
-def _own_section(algorithm: Any) -> tuple[str, type] | None:
-    """(key, dataclass) of the own section of a learner given by path (`algorithm:
-    module:Class`) that TrainConfig has no field for; None for any other algorithm (a
-    built-in name, or a value that validation refuses later)."""
-    if not isinstance(algorithm, str) or ":" not in algorithm:
-        return None
-    cls = learner_class(algorithm)
+def _own_section(cls: Any, key: str, ref: str, shared: bool = False
+                 ) -> tuple[str, type] | None:
+    """(top-level key, dataclass) of the own section (`settings_section`, `settings_type`) of
+    `cls`, the class `ref` names at the config key `key` (a learner's `algorithm`, a
+    curriculum's `ued.method`), when TrainConfig has no field for it; None when it has none,
+    or (`shared`: a learner) when it reads a built-in section of that type (a Q-learner's
+    `qlearning`). A section that is no new top-level key, or a type that is no dataclass, is
+    one ConfigError naming `key`."""
     section, kind = cls.settings_section, cls.settings_type
     if section is None:
         return None
-    if section in _sections():  # a built-in section (a Q-learner's `qlearning`)
-        _check(kind is _type_hints(TrainConfig)[section], "algorithm",
-               f"{algorithm} reads the section {section!r}, whose type is "
+    if shared and section in _sections():  # a built-in section (a Q-learner's `qlearning`)
+        _check(kind is _type_hints(TrainConfig)[section], key,
+               f"{ref} reads the section {section!r}, whose type is "
                f"{_type_hints(TrainConfig)[section].__name__}, not {kind!r}")
         return None
-    _check(section not in {f.name for f in dataclasses.fields(TrainConfig)}
-           and isinstance(kind, type) and dataclasses.is_dataclass(kind), "algorithm",
-           f"{algorithm} names its settings section {section!r} with settings_type {kind!r}: "
-           f"the section must be a new top-level key, its type a dataclass")
+    _check(isinstance(section, str) and section not in {
+        f.name for f in dataclasses.fields(TrainConfig)} and isinstance(kind, type)
+        and dataclasses.is_dataclass(kind), key,
+        f"{ref} names its settings section {section!r} with settings_type {kind!r}: the "
+        f"section must be a new top-level key, its type a dataclass")
     return section, kind
+
+
+def _own_sections(algorithm: Any, method: Any) -> dict[str, tuple[str, type]]:
+    """The own sections (`_own_section`) of the learner `algorithm` and the curriculum
+    `method`, by the TrainConfig field that keeps each one's values (`algorithm_settings`,
+    `method_settings`). Only a class given by path (or a registered curriculum) can have one;
+    any other value, refused by validation later, has none. Both reading one key is a
+    ConfigError."""
+    out = {}
+    if isinstance(algorithm, str) and ":" in algorithm:
+        learner = _own_section(learner_class(algorithm), "algorithm", algorithm, shared=True)
+        if learner is not None:
+            out["algorithm_settings"] = learner
+    if isinstance(method, str) and (method in CURRICULA or is_import_path(method)):
+        own = _own_section(curriculum_class(method, "ued.method"), "ued.method", method)
+        if own is not None:
+            _check("algorithm_settings" not in out or out["algorithm_settings"][0] != own[0],
+                   "ued.method", f"{method} reads the section {own[0]!r}, which algorithm "
+                   f"{algorithm} reads too: one of them must name it otherwise")
+            out["method_settings"] = own
+    return out
+
+
+def _named_classes(data: Mapping) -> tuple[Any, Any]:
+    """(`algorithm`, `ued.method`) of a parsed config mapping, None where it has none."""
+    ued = data.get("ued")
+    return data.get("algorithm"), ued.get("method") if isinstance(ued, Mapping) else None
 
 
 def load_config(path: str | Path, overrides: Sequence[str] = ()) -> TrainConfig:
@@ -863,21 +919,27 @@ def _field_paths() -> dict[str, list[str]]:
     return out
 
 
-def _override_section(data: Mapping, overrides: Sequence[str]) -> tuple[str, type] | None:
-    """`_own_section` of the algorithm the overrides leave (the last `algorithm=` override, or
-    the file's)."""
-    algorithm = data.get("algorithm")
+def _override_sections(data: Mapping, overrides: Sequence[str]) -> list[tuple[str, type]]:
+    """The own sections (`_own_sections`) of the learner and the curriculum the overrides leave
+    (the last `algorithm=` and `ued.method=` overrides, or the file's)."""
+    paths = _field_paths()
+    named = dict(zip(("algorithm", "ued.method"), _named_classes(data), strict=True))
     for item in overrides:
         key, sep, text = item.partition("=")
-        if sep and key.strip() == "algorithm":
+        key = key.strip()
+        key = paths[key][0] if "." not in key and len(paths.get(key, [])) == 1 else key
+        if sep and key in named:
             try:
-                algorithm = yaml.safe_load(text)
+                named[key] = yaml.safe_load(text)
             except yaml.YAMLError:
-                algorithm = text
-    try:
-        return _own_section(algorithm)
-    except ConfigError:
-        return None  # refused, naming the override, when the config is validated
+                named[key] = text
+    found = []
+    for args in ((named["algorithm"], None), (None, named["ued.method"])):  # each alone
+        try:
+            found += _own_sections(*args).values()
+        except ConfigError:
+            pass  # refused, naming the override, when the config is validated
+    return list(dict.fromkeys(found))
 
 
 def apply_overrides(data: Any, overrides: Sequence[str], source: str = "config") -> dict:
@@ -888,10 +950,9 @@ def apply_overrides(data: Any, overrides: Sequence[str], source: str = "config")
     paths = _field_paths()
     sections = set(_sections())
     valid = sorted(p for ps in paths.values() for p in ps)
-    own = _override_section(data, overrides)
-    if own is not None:  # a by-path learner's own section: its keys too
-        sections.add(own[0])
-        valid += [f"{own[0]}.{f.name}" for f in dataclasses.fields(own[1])]
+    for section, kind in _override_sections(data, overrides):  # own sections: their keys too
+        sections.add(section)
+        valid += [f"{section}.{f.name}" for f in dataclasses.fields(kind)]
     for item in overrides:
         key, sep, text = item.partition("=")
         key = key.strip()

@@ -2,9 +2,9 @@
 building it, and the import of a method's class given by path ("module:Class").
 
 A curriculum's entry is its name and class: the class says what it needs (a level buffer, its
-branches, its scores; `ued.curricula.base`), and any other `Curriculum` subclass is used by
-import path (`ued.method: my_module:MyCurriculum`, `curriculum_class`). Importing a class
-compiles and allocates nothing.
+branches, its scores, a settings section of its own; `ued.curricula.base`), and any other
+`Curriculum` subclass is used by import path (`ued.method: my_module:MyCurriculum`,
+`curriculum_class`). Importing a class compiles and allocates nothing.
 
 A learner is its class: `LEARNERS` maps the built-in names to their classes' paths, and
 `algorithm: module:Class` names any other (`learner_class`). What a learner reads and supports
@@ -120,9 +120,10 @@ class CurriculumEntry:
         """The curriculum class (imports its module)."""
         return _resolve(self.cls)
 
-    def build(self, section: Any) -> Any:
-        """The curriculum, configured by `section` (the config's UEDSection)."""
-        return self.load().from_config(section)
+    def build(self, section: Any, settings: Any = None) -> Any:
+        """The curriculum, configured by `section` (the config's UEDSection) and `settings`
+        (its own section: `curriculum_for`)."""
+        return build_curriculum(self.load(), section, settings)
 
 
 CURRICULA: dict[str, CurriculumEntry] = {}
@@ -163,9 +164,21 @@ def curriculum_entry(method: str) -> CurriculumEntry:
                          f"{', '.join(CURRICULA)} or an import path module:Class") from None
 
 
-def curriculum_for(section: Any) -> Any:
-    """The curriculum of a UEDSection (`section.method`: a name or an import path)."""
-    return curriculum_class(section.method).from_config(section)
+def curriculum_for(section: Any, settings: Any = None) -> Any:
+    """The curriculum of a UEDSection (`section.method`: a name or an import path) and its own
+    settings section, an instance of its class's `settings_type` (default: that type's
+    defaults; a config's: `TrainConfig.curriculum_settings()`)."""
+    return build_curriculum(curriculum_class(section.method), section, settings)
+
+
+def build_curriculum(cls: type, section: Any, settings: Any = None) -> Any:
+    """`cls.from_config(section, settings)`, `settings` defaulting to `cls.settings_type()`
+    (None for a class without a section, which takes none: ValueError)."""
+    if cls.settings_type is None and settings is not None:
+        raise ValueError(f"{cls.name} has no settings section of its own: it takes no settings")
+    if settings is None and cls.settings_type is not None:
+        settings = cls.settings_type()
+    return cls.from_config(section, settings)
 
 
 for _entry in (CurriculumEntry("dr", "ued.curricula.dr:DomainRandomization"),
@@ -220,5 +233,6 @@ def learners_where(test: Callable[[type], bool]) -> tuple[str, ...]:
 
 
 __all__ = ["CURRICULA", "IMPORT_PATH_ENV", "LEARNERS", "LEARNER_ATTRIBUTES", "CurriculumEntry",
-           "curriculum_class", "curriculum_entry", "curriculum_for", "import_env", "import_path",
-           "is_import_path", "learner_class", "learners_where", "register_curriculum"]
+           "build_curriculum", "curriculum_class", "curriculum_entry", "curriculum_for",
+           "import_env", "import_path", "is_import_path", "learner_class", "learners_where",
+           "register_curriculum"]

@@ -82,7 +82,7 @@ def level_service_for(config: TrainConfig, learner: PPOLearner) -> LevelService:
     ued = config.ued
     template = jax.tree.map(lambda x: np.asarray(x)[0], generator.base_levels)
     return LevelService(generator, template, ued, seed=config.seed,
-                        curriculum=curriculum_for(ued))
+                        curriculum=curriculum_for(ued, config.curriculum_settings()))
 
 
 def evaluators_for(config: TrainConfig, learner: PPOLearner) -> list[Evaluator]:
@@ -125,7 +125,7 @@ class UEDRun:
                  evaluators: list[Any] = ()):
         self.config = config
         ued = config.ued
-        self.curriculum: Curriculum = curriculum_for(ued)
+        self.curriculum: Curriculum = curriculum_for(ued, config.curriculum_settings())
         self.score = self.curriculum.score_name(ued)  # the score levels are ranked by
         self.service, self.explorer, self.evaluators = service, explorer, list(evaluators)
         self.sfl_scoring_steps = 0

@@ -433,6 +433,10 @@ OVERRIDES = {
     "algorithm=no_such_module:Learner": r"algorithm: no module 'no_such_module'",
     "algorithm=os.path:join": r"algorithm: os\.path:join is not a learner class",
     "algorithm=ued.learners:Nope": r"algorithm: ued\.learners \(.*\) has no 'Nope'",
+    # A curriculum class by path that is not one, and a settings section no method here reads.
+    "ued.method=os.path:join": r"ued\.method: 'os\.path:join' is not a ued\.curricula\.",
+    "novelty.bonus_weight=0.1": r"override 'novelty\.bonus_weight=0\.1': unknown key "
+                                r"'novelty\.bonus_weight'",
 }
 
 

@@ -19,6 +19,11 @@ its continuous schedule). No driver, schedule or command looks at a curriculum's
                                  keeps them as levels (`parents-<step>.msgpack`)
     state_dict / load_state_dict its state, saved beside every checkpoint
 
+A method with settings of its own beyond the `ued:` section names a new top-level config key
+and a dataclass of its fields (`settings_section`, `settings_type`): the config reads and
+writes them as it does a built-in section, `validate_settings` refuses bad values, and
+`from_config` gets them built.
+
 A method is one subclass in one file (`ued/curricula/<method>.py`, or any importable module:
 `ued.method: my_module:MyCurriculum`); docs/new_method.md is the guide. The replay decision
 belongs to the level buffer (`LevelBuffer.sample_replay_decision`: filled to the minimum fill
@@ -73,6 +78,12 @@ class Curriculum:
     uses_buffer: ClassVar[bool] = False  # keeps a scored level buffer (snapshotted)
     branches: ClassVar[tuple[Branch, ...]] = ()  # every branch `next_branch` can take
     default_exploratory_grad_updates: ClassVar[bool] = True  # train on NEW levels
+    # Its own config section (None: the `ued:` section only): a new top-level config key and
+    # the (frozen) dataclass of its fields. The config reads it with its field types, keeps
+    # it as `TrainConfig.method_settings`, writes it back under that key, and hands the built
+    # dataclass to `from_config` (in every process of the run: it travels with the config).
+    settings_section: ClassVar[str | None] = None
+    settings_type: ClassVar[type | None] = None
 
     def __init__(self, exploratory_grad_updates: bool | None = None):
         default = self.default_exploratory_grad_updates
@@ -84,9 +95,16 @@ class Curriculum:
         self.last_replay_levels: Any = None
 
     @classmethod
-    def from_config(cls, ued: Any) -> Curriculum:
-        """The curriculum a config's `ued:` section (UEDSection) asks for."""
+    def from_config(cls, ued: Any, settings: Any = None) -> Curriculum:
+        """The curriculum a config's `ued:` section (UEDSection) asks for; `settings`: its own
+        section, an instance of `settings_type` (None for a method without one)."""
         return cls(ued.exploratory_grad_updates)
+
+    @classmethod
+    def validate_settings(cls, settings: Any, ued: Any) -> None:
+        """Refuse values of its own section (`settings_type`) that cannot work, alone or with
+        the `ued:` section, by a ConfigError naming the field (`ued.errors.check`); the field
+        types are checked when the config is read. Nothing to check here."""
 
     # --- decisions -----------------------------------------------------------------------------
 

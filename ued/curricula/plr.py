@@ -17,7 +17,7 @@ class PLR(Curriculum):
     branches = (Branch.NEW, Branch.REPLAY)
 
     @classmethod
-    def from_config(cls, ued: Any) -> Curriculum:
+    def from_config(cls, ued: Any, settings: Any = None) -> Curriculum:
         return cls(exploratory_grad_updates=ued.exploratory_grad_updates)
 
     def next_branch(self, buffer: ReplayDecider | None) -> Branch:

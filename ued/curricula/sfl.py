@@ -21,7 +21,7 @@ class SFL(Curriculum):
         self.update_freq = int(update_freq)
 
     @classmethod
-    def from_config(cls, ued: Any) -> Curriculum:
+    def from_config(cls, ued: Any, settings: Any = None) -> Curriculum:
         return cls(ued.sfl_update_freq)
 
     def next_branch(self, buffer: ReplayDecider | None) -> Branch:
