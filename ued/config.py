@@ -659,8 +659,12 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
                 number = float(value)
             except ValueError:
                 number = None
-        if isinstance(number, bool) or not isinstance(number, int | float) or not math.isfinite(
-                float(number)):
+        try:  # an integer beyond a float's range is no number either
+            finite = (isinstance(number, int | float) and not isinstance(number, bool)
+                      and math.isfinite(number))
+        except OverflowError:
+            finite = False
+        if not finite:
             raise ConfigError(f"{key}: expected a number, got {_shown(value)}")
         return float(number)
     if tp is str:

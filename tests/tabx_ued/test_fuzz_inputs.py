@@ -429,6 +429,7 @@ OVERRIDES = {
     "seed=18446744073709551616": r"seed: must be an integer in \[0, 2\*\*63\)",
     "run.name=" + "n" * 10_000: r"run\.name: must be at most 200 bytes",
     "learner.lr=1e308": r"learner\.lr: must be in \(0, 1\]",
+    "learner.lr=1" + "0" * 400: r"learner\.lr: expected a number, got 1000",
     # A learner class by path that does not import, or is not a learner.
     "algorithm=no_such_module:Learner": r"algorithm: no module 'no_such_module'",
     "algorithm=os.path:join": r"algorithm: os\.path:join is not a learner class",
