@@ -239,6 +239,16 @@ def test_the_example_method_runs_on_every_driver_and_they_agree(tmp_path):
     assert check.continuous_record["branches"]["replay"] >= 1
 
 
+def test_the_ray_level_service_rebuilds_the_method_with_its_own_settings():
+    """The Ray level service (built here, in this process, as Ray builds the actor: from a
+    pickled copy of the config) scores with the config's `novelty.bonus_weight`."""
+    from workers.ray.actors import LevelServiceActor
+
+    config = ued_config(NOVELTY, **{"novelty.bonus_weight": 2.0})
+    actor = LevelServiceActor(pickle.loads(pickle.dumps(config)))
+    assert actor.curriculum.settings.bonus_weight == 2.0
+
+
 CURRICULUM_CLASSES = {"Curriculum", "DomainRandomization", "PLR", "RobustPLR", "ACCEL", "SFL",
                       "UniformReplay"}
 METHOD_NAMES = {"dr", "plr", "robust_plr", "accel", "sfl", "uniform_replay"}
