@@ -206,6 +206,27 @@ def test_the_built_in_methods_take_no_settings():
             build_curriculum(curriculum_class(method), config.ued, Weight())
 
 
+def test_a_sweep_varies_a_methods_own_settings_and_checks_them_per_trial(tmp_path):
+    """A sweep's grid may name a by-path method's own settings: each trial's config carries its
+    value, and a misspelt field is one error naming the trial and the field."""
+    from workers.sweep.spec import read_sweep_spec
+
+    (tmp_path / "base.yaml").write_text(ued_config(NOVELTY).to_yaml())
+    sweep = tmp_path / "sweep.yaml"
+    sweep.write_text("base: base.yaml\ngrid:\n  novelty.bonus_weight: [0.0, 2.0]\n"
+                     "  seed: [0, 1]\n")
+    spec = read_sweep_spec(sweep)
+    weights = sorted(t.config.curriculum_settings().bonus_weight for t in spec.trials)
+    assert weights == [0.0, 0.0, 2.0, 2.0]
+    sweep.write_text("base: base.yaml\ngrid:\n  novelty.bonus_wieght: [0.0, 2.0]\n")
+    with pytest.raises(ConfigError, match=r"unknown key 'novelty\.bonus_wieght'; did you mean"):
+        read_sweep_spec(sweep)
+    sweep.write_text("base: base.yaml\nset: {ued.method: robust_plr}\n"
+                     "grid:\n  novelty.bonus_weight: [1.0]\n")
+    with pytest.raises(ConfigError, match=r"unknown key 'novelty"):  # not robust_plr's
+        read_sweep_spec(sweep)
+
+
 @functools.cache
 def novelty_data() -> dict:
     return ued_config(NOVELTY).to_dict()

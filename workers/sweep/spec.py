@@ -191,13 +191,35 @@ class _Axis:
     values: tuple[tuple[str, tuple[tuple[str, Any], ...]], ...]
 
 
-def _config_keys() -> set[str]:
-    """Every key an override may name: `section.field`, and bare names that are unambiguous."""
-    from ued.config import _field_paths
+class _ConfigKeys(frozenset):
+    """The keys a sweep may set: the config's `section.field` keys, its unambiguous bare names,
+    and `section.field` of a section that is not the config's own (the settings section of a
+    method or learner given by path, `settings_section`): those are checked when each trial's
+    config is read, against the class that trial names."""
+
+    def __contains__(self, key: object) -> bool:
+        if frozenset.__contains__(self, key):
+            return True
+        if not isinstance(key, str) or key.count(".") != 1:
+            return False
+        section, field_name = key.split(".")
+        return (section.isidentifier() and field_name.isidentifier()
+                and section not in self.top_level)
+
+    top_level: frozenset[str] = frozenset()
+
+
+def _config_keys() -> _ConfigKeys:
+    """Every key an override may name: `section.field`, bare names that are unambiguous, and
+    the fields of a by-path method's or learner's own section (`_ConfigKeys`)."""
+    import dataclasses
+
+    from ued.config import TrainConfig, _field_paths
 
     paths = _field_paths()
-    keys = {p for ps in paths.values() for p in ps}
-    keys |= {bare for bare, ps in paths.items() if len(ps) == 1}
+    keys = _ConfigKeys({p for ps in paths.values() for p in ps}
+                       | {bare for bare, ps in paths.items() if len(ps) == 1})
+    keys.top_level = frozenset(f.name for f in dataclasses.fields(TrainConfig))
     return keys
 
 
