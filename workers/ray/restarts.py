@@ -10,7 +10,9 @@ actor:
                          (`workers.ray.durable_service`); its state-changing calls are numbered
                          (`RemoteService`), so one it had logged before dying is not applied
                          twice
-    Learner              not restarted: its death stops the run (resume from a checkpoint)
+    Learner              not restarted as an actor: the run restarts from its newest intact
+                         checkpoint, up to `ray.learner_restarts` times
+                         (`workers.ray.learner_group.Restarts`), then stops
 """
 
 from __future__ import annotations
