@@ -60,13 +60,13 @@ def state_problem(state: Any) -> str | None:
     with its snapshot, `UEDRun.state`), or None."""
     if not isinstance(state, dict):
         return f"expected a JSON object, got {type(state).__name__}"
-    curriculum = state.get("curriculum")
-    if not isinstance(curriculum, dict) or not isinstance(curriculum.get("method"), str):
+    record = state.get("curriculum")  # its JSON record (a parsed object, not a class)
+    if not isinstance(record, dict) or not isinstance(record.get("method"), str):
         return "curriculum: expected an object with the curriculum's method"
-    last = curriculum.get("last_branch")
+    last = record.get("last_branch")
     if last is not None and not _is_int(last):
         return f"curriculum.last_branch: expected a branch number, got {last!r:.40}"
-    ids = curriculum.get("last_replay_ids", [])
+    ids = record.get("last_replay_ids", [])
     if not isinstance(ids, list) or not all(_is_int(i) for i in ids):
         return "curriculum.last_replay_ids: expected a list of level ids"
     if not _is_int(state.get("version")):
