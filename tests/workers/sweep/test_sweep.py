@@ -85,9 +85,12 @@ def test_a_bad_sweep_file_is_one_error_naming_file_and_field(tmp_path, text, mes
 
 
 def test_the_shipped_sweeps_read(tmp_path):
-    for name in ("paper_ued", "paper_marl", "paper_marl_cpu", "smoke_ued", "smoke_marl"):
-        spec = read_sweep_spec(ROOT / "configs" / "sweeps" / f"{name}.yaml")
-        assert spec.trials and spec.report_axes().seed_axis is not None, name
+    shipped = sorted((ROOT / "configs" / "sweeps").glob("*.yaml"))
+    assert {"paper_ued", "paper_ued_cpu", "paper_ablation_cpu", "paper_marl_cpu"} <= {
+        path.stem for path in shipped}
+    for path in shipped:
+        spec = read_sweep_spec(path)
+        assert spec.trials and spec.report_axes().seed_axis is not None, path.name
     paper = read_sweep_spec(ROOT / "configs" / "sweeps" / "paper_ued.yaml")
     # 5 methods x {unit, zone} x 4 scenarios, and the health/speed/damage ablations, x 5 seeds
     assert len(paper.trials) == 5 * (2 + 3) * 4 * 5
@@ -95,6 +98,12 @@ def test_the_shipped_sweeps_read(tmp_path):
     marl = read_sweep_spec(ROOT / "configs" / "sweeps" / "paper_marl_cpu.yaml")
     # MAPPO and IPPO x 4 challenges, 3 seeds in each trial's program
     assert len(marl.trials) == 2 * 4 and {t.config.seeds for t in marl.trials} == {(0, 1, 2)}
+    ablation = read_sweep_spec(ROOT / "configs" / "sweeps" / "paper_ablation_cpu.yaml")
+    # one attribute free at a time, at the UED study's CPU budget, x 3 seeds
+    assert len(ablation.trials) == 3 * 3
+    assert {t.config.levels.free for t in ablation.trials} == {
+        ("health",), ("speed",), ("damage",)}
+    assert {t.config.learner.total_timesteps for t in ablation.trials} == {819_200}
 
 
 # --- running a sweep ---------------------------------------------------------------------------
