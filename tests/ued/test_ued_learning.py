@@ -1,21 +1,26 @@
-"""Learning check: a tiny UED run learns, measured zero-shot on held-out levels, so that a change
-that breaks learning (the learner, the UED step, level generation, the evaluator) fails the default
-suite.  The learning tests' battle (tests/ued/test_learners_helpers.py, learning_duel: two archers
+"""Learning check: a tiny UED run learns, measured zero-shot on held-out levels, so that a
+change that breaks learning (the learner, the UED step, level generation, the evaluator) fails
+the default suite.
+
+The learning tests' battle (learning_duel in tests/ued/test_learners_helpers.py: two archers
 facing +x, a farmer driven by the random controller above them, outside their field of view; an
 untrained policy rarely turns and shoots, and loses on health at the time limit) with 48-step
-episodes. PLR with MAPPO trains on it with the units' health free (levels.health [30, 150]) for 50
-steps of 32 envs x 48 steps (76,800 env steps, hidden 32), and is evaluated once, at the end,
-zero-shot on two held-out layouts (archers at x = -14 and the farmer at y = 20; archers at x = -10
-and the farmer at y = 16), 32 episodes each against the random controller.  Measured with this
-test's settings (the session's quick-compile flags) on 2026-11-28 on the shared 2-core VM, at a load
-average of 9-22 from other jobs: the zero-shot mean win rate at the end was 0.91, 0.97, 0.89, 0.73
-and 0.84 for seeds 0-4 (seeds 2 and 3 also evaluated halfway, at 0.41 and 0.23); the training win
-rate climbed from 0.00-0.12 to 0.8-1.0. A broken learner (the policy loss's advantages zeroed by a
-monkeypatch, all else unchanged) ended at 0.06 and 0.02 (seeds 0 and 1), its training win rate at
-0.03-0.12 throughout. The threshold, 0.4, is 0.33 below the lowest measured run and 0.34 above the
-broken learner's highest; this test (seed 0) passes, and fails at 0.0625 with the broken learner.
-One run took 52-66 s of CPU time (compilation included); the test took 55 s of wall time at a load
-average of 8-12. """
+episodes.
+PLR with MAPPO trains on it with the units' health free (levels.health [30, 150]) for 50 steps
+of 32 envs x 48 steps (76,800 env steps, hidden 32), and is evaluated once, at the end,
+zero-shot on two held-out layouts (archers at x = -14 and the farmer at y = 20; archers at
+x = -10 and the farmer at y = 16), 32 episodes each against the random controller.
+
+Measured with this test's settings (the session's quick-compile flags) on 2026-11-28 on the
+shared 2-core VM, at a load average of 9-22 from other jobs: the zero-shot mean win rate at
+the end was 0.91, 0.97, 0.89, 0.73 and 0.84 for seeds 0-4 (seeds 2 and 3 also evaluated
+halfway, at 0.41 and 0.23); the training win rate climbed from 0.00-0.12 to 0.8-1.0. A broken
+learner (the policy loss's advantages zeroed by a monkeypatch, all else unchanged) ended at
+0.06 and 0.02 (seeds 0 and 1), its training win rate at 0.03-0.12 throughout. The threshold,
+0.4, is 0.33 below the lowest measured run and 0.34 above the broken learner's highest; this
+test (seed 0) passes, and fails at 0.0625 with the broken learner. One run took 52-66 s of CPU
+time (compilation included); the test took 55 s of wall time at a load average of 8-12.
+"""
 
 from __future__ import annotations
 
