@@ -177,6 +177,7 @@ def _episodes(count: float) -> str:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
+    from tabx import constants as C
     from tabx.controllers import Controller
     from tabx.profiles import DEFAULT_PROFILE, with_profile
     from tabx.scenarios import ScenarioError, config_for, load_named
@@ -193,6 +194,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
         raise UserError("--address joins a Ray cluster: give --ray too")
     if args.ray and args.suite is None:
         raise UserError("--ray plays an evaluation suite on a Ray actor: give --suite")
+    if args.max_steps is not None and not 1 <= args.max_steps <= C.MAX_STEPS:
+        raise UserError(f"--max-steps must be an integer in [1, {C.MAX_STEPS}] (steps per "
+                        f"episode), got {args.max_steps}")
     compile_cache.enable()
     if args.suite is not None:
         return _eval_suite(args)
@@ -211,6 +215,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
                 raise UserError(f"the {('ally', 'enemy')[team]} team is already played by "
                                 f"{args.run_dir}; name only the other team")
             sides[team] = parse_side(text)
+        if args.max_steps is not None:
+            sides = [s.with_episode_limit(args.max_steps) if isinstance(s, TrainedPolicy) else s
+                     for s in sides]
+            run = sides[run.team] if run is not None else None
         policies = [s for s in sides if isinstance(s, TrainedPolicy)]
         reference = run or (policies[0] if policies else None)
         for team in range(2):
@@ -228,7 +236,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         if reference is not None:
             env_config = reference.learner.env_config
         else:
-            env_config = config_for([scenario], max_steps=args.max_steps)
+            env_config = config_for([scenario], max_steps=args.max_steps or C.DEFAULT_MAX_STEPS)
         try:
             level = scenario.to_level(env_config)
         except ScenarioError as err:
@@ -274,6 +282,8 @@ def _eval_suite(args: argparse.Namespace) -> int:
     try:
         suite = load_suite(args.suite)
         policy = load_policy(args.run_dir, args.checkpoint)
+        if args.max_steps is not None:
+            policy = policy.with_episode_limit(args.max_steps)
         profile = args.profile or policy.config.env.profile
         key = jax.random.key(args.seed)
         if args.ray:
@@ -364,8 +374,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                     help="take the most likely action instead of sampling")
     ev.add_argument("--checkpoint", type=int,
                     help="checkpoint (update number) of RUN_DIR (default: newest)")
-    ev.add_argument("--max-steps", type=int, default=512,
-                    help="episode limit when no run folder gives one (default 512)")
+    ev.add_argument("--max-steps", type=int,
+                    help="episode limit (default: the run's env.max_steps; without a run "
+                         "folder 512). With a run folder, its policy plays episodes of this "
+                         "length: observations carry no clock")
     ev.add_argument("--gif", metavar="PATH", help="also render episode 0 as an animated GIF")
     ev.add_argument("--suite", metavar="NAME_OR_FILE",
                     help="evaluate RUN_DIR on every entry of an evaluation suite (a shipped "

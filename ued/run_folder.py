@@ -285,6 +285,14 @@ class TrainedPolicy:
         seed = "" if self.seed is None else f", seed {self.seed}"
         return f"{self.run_dir} ({self.config.algorithm}, update {self.update}{seed})"
 
+    def with_episode_limit(self, max_steps: int) -> TrainedPolicy:
+        """The same parameters playing episodes of `max_steps` steps. Observations carry no
+        clock, so a policy plays a longer or shorter episode than it trained on unchanged;
+        only the battle's end (an elimination, or the health ratio at the limit) moves."""
+        config = dataclasses.replace(self.config,
+                                     env=dataclasses.replace(self.config.env, max_steps=max_steps))
+        return dataclasses.replace(self, config=config, learner=learner_for(config))
+
 
 def load_policy(run_dir: str | Path, checkpoint: int | None = None) -> TrainedPolicy:
     """The policy of a run folder at its newest (or the given) checkpoint. A multi-seed run

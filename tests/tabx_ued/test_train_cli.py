@@ -99,6 +99,15 @@ def test_train_resume_and_eval(capsys, tmp_path, tiny_yaml):
     assert gif.is_file() and gif.stat().st_size > 0
     code, _, err = run_cli(capsys, "eval", str(run), "--scenario", "crossfire")
     assert code == 2 and "do not fit" in err
+    # Episodes of another length than the run trained with (8 steps): against an idle enemy
+    # nobody is eliminated, so every episode lasts exactly the limit given.
+    for limit in (3, 20):
+        code, out, err = run_cli(capsys, "eval", str(run), "--enemy", "idle", "--episodes", "4",
+                                 "--max-steps", str(limit))
+        assert code == 0, err
+        assert f"episode length {limit}.0 ± 0.0 steps" in out
+    code, _, err = run_cli(capsys, "eval", str(run), "--max-steps", "0")
+    assert code == 2 and "--max-steps must be an integer in [1," in err
 
 
 @pytest.mark.slow
