@@ -12,7 +12,7 @@
     tabx eval payoff                                             tabx_ued.analysis_commands
     tabx analyse value-error                                     tabx_ued.analysis_commands
     tabx runs status | buffer                                    tabx_ued.run_folder_commands
-    tabx sweep SPEC, tabx sweep report                           tabx_ued.sweep_commands
+    tabx sweep SPEC, tabx sweep report, tabx sweep evaluate       tabx_ued.sweep_commands
 """
 
 from __future__ import annotations
@@ -49,11 +49,12 @@ def add_commands(subparsers: argparse._SubParsersAction) -> None:
     sweep_commands.add_parser(subparsers)
 
 
-# `tabx eval WORD ...` routes beside `tabx eval RUN_DIR`; `tabx sweep report` beside
-# `tabx sweep SPEC`.
+# `tabx eval WORD ...` routes beside `tabx eval RUN_DIR`; `tabx sweep report` and
+# `tabx sweep evaluate` beside `tabx sweep SPEC`.
 ROUTES = {("eval", "heuristics"): heuristics.add_route_parser,
           ("eval", "payoff"): analysis_commands.add_payoff_route_parser,
-          ("sweep", "report"): sweep_commands.add_route_parser}
+          ("sweep", "report"): sweep_commands.add_route_parser,
+          ("sweep", "evaluate"): sweep_commands.add_route_parser}
 
 
 __all__ = ["ROUTES", "add_commands"]

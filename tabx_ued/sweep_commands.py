@@ -1,13 +1,16 @@
-"""`tabx sweep SPEC` and `tabx sweep report SWEEP_DIR`: experiments of many runs.
+"""`tabx sweep SPEC`, `tabx sweep report SWEEP_DIR` and `tabx sweep evaluate SWEEP_DIR`:
+experiments of many runs.
 
     tabx sweep configs/sweeps/smoke_ued.yaml                 # run it on a Ray started here
     tabx sweep configs/sweeps/smoke_ued.yaml --resume        # finish what a killed sweep left
     tabx sweep sweeps/paper_ued --address auto               # on the cluster this machine is in
     tabx sweep report sweeps/smoke_ued                       # its tables and learning curves
     tabx sweep report sweeps/smoke_ued --interval t95        # 95 % intervals, not s.e.
+    tabx sweep evaluate sweeps/smoke_ued --max-steps 512     # its policies, 512-step episodes
 
 The sweep file is `workers.sweep.spec`'s, the scheduling `workers.sweep.tune`'s (Ray Tune),
-the report `workers.sweep.report`'s; docs/experiments.md walks from one run to the paper's table.
+the report `workers.sweep.report`'s, the evaluation under another episode limit
+`workers.sweep.reevaluate`'s; docs/experiments.md walks from one run to the paper's table.
 """
 
 from __future__ import annotations
@@ -74,6 +77,25 @@ def cmd_sweep_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_sweep_evaluate(args: argparse.Namespace) -> int:
+    from ued import compile_cache
+    from workers.sweep.reevaluate import evaluate_sweep
+
+    if args.episodes is not None and args.episodes < 1:
+        raise ConfigError(f"--episodes: expected an integer >= 1, got {args.episodes}")
+    compile_cache.enable()
+    try:
+        markdown = evaluate_sweep(args.sweep_dir, args.max_steps, episodes=args.episodes,
+                                  seed=args.seed, out=args.out, stream=sys.stderr)
+    except OSError as err:
+        where = f"--out: {args.out}" if args.out is not None else str(err.filename or "")
+        raise ConfigError(f"{where}: cannot write the evaluation there ({err.strerror or err}); "
+                          f"give a folder that can be made or written (--out)") from None
+    print(markdown.read_text(), end="")
+    print(f"written: {markdown}, {markdown.with_suffix('.csv')}", file=sys.stderr)
+    return 0
+
+
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "sweep", help="run a sweep file's trials with Ray Tune (tabx sweep report: its tables)",
@@ -117,6 +139,18 @@ def add_route_parser(sub: argparse._SubParsersAction) -> None:
                         "seeds (default, as the paper), or t95, half the 95 %% Student-t "
                         "interval")
     p.set_defaults(func=cmd_sweep_report)
+    p = sub.add_parser("evaluate", help="a finished sweep's policies played again with another "
+                                        "episode limit (the paper's: 512)")
+    p.add_argument("sweep_dir", metavar="SWEEP_DIR")
+    p.add_argument("--max-steps", type=int, required=True, metavar="M",
+                   help="steps per episode (observations carry no clock)")
+    p.add_argument("--episodes", type=int, metavar="K",
+                   help="episodes per suite entry (default: the suite's)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--out", metavar="DIR", help="where to write (default SWEEP_DIR/report); a "
+                                                "stopped evaluation continues from its CSV")
+    p.set_defaults(func=cmd_sweep_evaluate)
 
 
-__all__ = ["add_parser", "add_route_parser", "cmd_sweep", "cmd_sweep_report"]
+__all__ = ["add_parser", "add_route_parser", "cmd_sweep", "cmd_sweep_evaluate",
+           "cmd_sweep_report"]

@@ -153,7 +153,7 @@ def _opponent_of(tag: str, prefix: str) -> str | None:
     return opponent[len(HEURISTIC_PREFIX):] if opponent.startswith(HEURISTIC_PREFIX) else opponent
 
 
-def _tier_order(opponent: str) -> tuple[int, str]:
+def tier_order(opponent: str) -> tuple[int, str]:
     return (TIER_ORDER.index(opponent) if opponent in TIER_ORDER else len(TIER_ORDER), opponent)
 
 
@@ -192,7 +192,7 @@ def trial_result(folder: SweepFolder, name: str, labels: dict[str, str]) -> Tria
             means = [_last(scalars.get(f"eval/{s}/mean_win_rate")) for s in tier_suites]
             by_opponent[MEAN_ROW] = means
             per_seed.append(by_opponent)
-        opponents = sorted({o for d in per_seed for o in d if o != MEAN_ROW}, key=_tier_order)
+        opponents = sorted({o for d in per_seed for o in d if o != MEAN_ROW}, key=tier_order)
         for opponent in [*opponents, MEAN_ROW]:
             tiers[opponent] = []
             for by_opponent in per_seed:
@@ -226,7 +226,7 @@ def not_finished(folder: SweepFolder) -> dict[str, str]:
     return out
 
 
-def _fmt(stat: Stat) -> str:
+def format_stat(stat: Stat) -> str:
     """`0.52 ± 0.08`; `0.97 +0.03 −0.05` where clipping made the interval asymmetric; the
     mean alone for one seed; `-` for none."""
     if not stat.n:
@@ -239,7 +239,7 @@ def _fmt(stat: Stat) -> str:
     return f"{stat.mean:.2f} +{up:.2f} −{down:.2f}"
 
 
-def _md_table(header: list[str], rows: list[list[str]]) -> str:
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
     return "\n".join(lines)
@@ -357,16 +357,16 @@ def write_report(sweep_dir: str | Path, out: str | Path | None = None, partial: 
                              lambda r: r.finals)
             pooled = _collect(in_group, lambda r: (layout.column(r),), lambda r: r.finals)
             rows = [row for row in layout.rows if any((row, c) in cells for c in layout.columns)]
-            table_rows = [[row, *(_fmt(stat(cells[(row, c)])) if (row, c) in cells else "-"
+            table_rows = [[row, *(format_stat(stat(cells[(row, c)])) if (row, c) in cells else "-"
                                   for c in layout.columns)] for row in rows]
             if figure_axis:
-                table_rows.append([MEAN_ROW, *(_fmt(stat(pooled[(c,)])) if (c,) in pooled
+                table_rows.append([MEAN_ROW, *(format_stat(stat(pooled[(c,)])) if (c,) in pooled
                                                else "-" for c in layout.columns)])
             title = ("Zero-shot win rate (held-out suites, last evaluation)" if kind == ZERO_SHOT
                      else "Training win rate (last logged update)")
             where = layout.group_title(group)
             md += [f"## {title}" + (f": {where}" if where else ""), ""]
-            md += [_md_table([figure_axis or "", *layout.columns], table_rows), ""]
+            md += [markdown_table([figure_axis or "", *layout.columns], table_rows), ""]
             for r_row, column in cells:
                 r = next(r for r in in_group if layout.row(r) == r_row
                          and layout.column(r) == column)
@@ -382,7 +382,7 @@ def write_report(sweep_dir: str | Path, out: str | Path | None = None, partial: 
     with_tiers = [r for r in results if r.tiers]
     if with_tiers:
         opponents = sorted({o for r in with_tiers for o in r.tiers if o != MEAN_ROW},
-                           key=_tier_order) + [MEAN_ROW]
+                           key=tier_order) + [MEAN_ROW]
         table_rows = []
         for group in layout.groups:
             in_group = [r for r in with_tiers if layout.group(r) == group]
@@ -392,7 +392,7 @@ def write_report(sweep_dir: str | Path, out: str | Path | None = None, partial: 
                                   lambda r, o=opponent: r.tiers[o])
                 if not pooled:
                     continue
-                table_rows.append([*group, opponent, *(_fmt(stat(pooled[(c,)]))
+                table_rows.append([*group, opponent, *(format_stat(stat(pooled[(c,)]))
                                                        if (c,) in pooled else "-"
                                                        for c in layout.columns)])
                 for (column,), values in pooled.items():
@@ -414,7 +414,7 @@ def write_report(sweep_dir: str | Path, out: str | Path | None = None, partial: 
                "The tier suites (`tiers-*`: each training configuration's scenario against "
                "every heuristic tier, random the noisiest, expert the least noisy); `mean`: the "
                "mean over tiers.", ""]
-        md += [_md_table([*layout.group_axes, "opponent", *layout.columns], table_rows), ""]
+        md += [markdown_table([*layout.group_axes, "opponent", *layout.columns], table_rows), ""]
 
     atomic_write_text(out_dir / "results.csv", buffer.getvalue())
 
@@ -438,7 +438,7 @@ def write_report(sweep_dir: str | Path, out: str | Path | None = None, partial: 
 
     md += ["## Training time (mean wall time per trial, mean env steps/s)", ""]
     header = ([figure_axis] if figure_axis else []) + layout.group_axes
-    md += [_md_table([*(header or [""]), *layout.columns], [[*(key or ("all",)),
+    md += [markdown_table([*(header or [""]), *layout.columns], [[*(key or ("all",)),
                                        *(time_cell(cols.get(c)) for c in layout.columns)]
                                       for key, cols in sorted(time_rows.items(),
                                                               key=lambda kv: time_order(kv[0]))]),
@@ -457,7 +457,7 @@ def write_report(sweep_dir: str | Path, out: str | Path | None = None, partial: 
                            "-" if not math.isfinite(rate) else f"{rate:,.0f}"])
     trials_csv = out_dir / "trials.csv"
     atomic_write_text(trials_csv, buffer.getvalue())
-    md += ["## Trials", "", _md_table(["trial", "sessions", "env steps (all seeds)", "time",
+    md += ["## Trials", "", markdown_table(["trial", "sessions", "env steps (all seeds)", "time",
                                        "steps/s"], trial_rows), ""]
 
     figures = _figures(results, out_dir, layout)
@@ -527,5 +527,6 @@ def _figures(results: list[TrialResult], out_dir: Path, layout: _Layout) -> list
     return written
 
 
-__all__ = ["INTERVALS", "MEAN_ROW", "REPORT_DIR", "Stat", "TrialResult", "Written",
-           "not_finished", "seed_stat", "trial_result", "write_report"]
+__all__ = ["HEURISTIC_PREFIX", "INTERVALS", "MEAN_ROW", "REPORT_DIR", "Stat", "TrialResult",
+           "Written", "format_stat", "markdown_table", "not_finished", "seed_stat", "tier_order",
+           "trial_result", "write_report"]
