@@ -1,6 +1,7 @@
 """A finished sweep evaluated again under another episode limit (`tabx sweep evaluate SWEEP_DIR
 --max-steps 512`): every finished trial's final policy, each seed's, plays its own evaluation
-suites (`ued.eval_suites`) again, with episodes of `max_steps` steps, and the results are
+suites (`ued.eval_suites`; a run without any, such as a plain MARL run, its training scenarios
+against its training opponent) again, with episodes of `max_steps` steps, and the results are
 tabulated as the report tabulates the training-time evaluations (mean ± the standard error over
 seeds, held-out suites and tier suites apart).
 
@@ -28,9 +29,10 @@ import jax
 
 from tabx import constants as C
 from tabx.files import atomic_write_text
+from ued.config import TrainConfig
 from ued.errors import ConfigError
 from ued.run_folder import TrainedPolicy, load_policy, read_run_config, seed_dir
-from ued.suites import TIER_SUITE_PREFIX, load_suite
+from ued.suites import TIER_SUITE_PREFIX, EvalSuite, load_suite, suite_from_dict
 from workers.progress import format_duration
 from workers.roles.evaluator import Evaluator
 from workers.sweep.folder import SweepFolder
@@ -45,6 +47,7 @@ from workers.sweep.report import (
     tier_order,
 )
 
+TRAINING_SUITE = "training"  # the suite of a run without evaluation suites
 COLUMNS = ("trial", "seed", "suite", "scenario", "opponent", "episodes", "win_rate",
            "mean_length")
 
@@ -57,6 +60,18 @@ def _policies(run_dir: Path) -> Iterator[tuple[int, TrainedPolicy]]:
             yield seed, load_policy(seed_dir(run_dir, seed))
     else:
         yield config.seed, load_policy(run_dir)
+
+
+def _suites(config: TrainConfig) -> list[EvalSuite]:
+    """The run's evaluation suites; for a run without any (a plain MARL run, which the report
+    tables by its training win rate), its training scenarios against its training opponent."""
+    if config.ued.eval_suites:
+        return [load_suite(name) for name in config.ued.eval_suites]
+    return [suite_from_dict({"name": TRAINING_SUITE, "team": config.env.team,
+                             "opponent": config.env.opponent,
+                             "scenarios": list(config.env.scenario),
+                             "description": "the run's training scenarios and opponent"},
+                            source="the run's env section")]
 
 
 def _read_rows(path: Path) -> list[dict[str, str]]:
@@ -103,7 +118,7 @@ def evaluate_sweep(sweep_dir: str | Path, max_steps: int, *, episodes: int | Non
     key = jax.random.key(seed)
     todo = [(name, s, p, suite) for name in done
             for s, p in _policies(folder.run_dir(name))
-            for suite in map(load_suite, p.config.ued.eval_suites)
+            for suite in _suites(p.config)
             if (name, str(s), suite.name) not in played]
     started = None
     for index, (name, policy_seed, policy, suite) in enumerate(todo):
@@ -177,7 +192,10 @@ def _tables(body: dict, trials: dict, rows: list[dict[str, str]], max_steps: int
              f"{sum(mean_length) / len(mean_length):.1f} steps." if mean_length else ""), ""]
     groups = list(dict.fromkeys(g for g, _ in cells))
     if groups:
-        md += [f"## Zero-shot win rate (held-out suites, {max_steps}-step episodes)", "",
+        trained_on = {r["suite"] for r in rows} == {TRAINING_SUITE}
+        md += [f"## Win rate (the training scenarios and opponent, {max_steps}-step episodes)"
+               if trained_on else
+               f"## Zero-shot win rate (held-out suites, {max_steps}-step episodes)", "",
                markdown_table([*(row_axes or ["all"]), *columns],
                               [[*(g or ("all",)), *(format_stat(seed_stat(cells.get((g, c), [])))
                                                     for c in columns)] for g in groups]), ""]

@@ -38,15 +38,15 @@ def write_suites(folder):
     return [str(held), str(tiers)]
 
 
-@pytest.fixture(scope="module")
-def sweep(tmp_path_factory):
-    path = tmp_path_factory.mktemp("sweep") / "duel"
-    suites = write_suites(path.parent)
+def make_sweep(path, suites: list[str] | None, methods=METHODS, seeds=SEEDS):
+    """A sweep folder of finished trials with untrained policies; `suites`: each run's
+    `ued.eval_suites` (None: none, as a plain MARL run)."""
     listed = []
-    for method in METHODS:
-        for seed in SEEDS:
+    for method in methods:
+        for seed in seeds:
             name = f"seed{seed}-{method}"
-            config = tiny_config(seed=seed, **{"ued.eval_suites": json.dumps(suites)})
+            overrides = {"ued.eval_suites": json.dumps(suites)} if suites else {}
+            config = tiny_config(seed=seed, **overrides)
             run = path / "runs" / name
             run.mkdir(parents=True)
             (run / CONFIG_FILE).write_text(config.to_yaml())
@@ -61,9 +61,15 @@ def sweep(tmp_path_factory):
             listed.append({"name": name, "labels": {"seed": str(seed), "method": method},
                            "run_dir": f"runs/{name}", "config_sha256": "0" * 64})
     (path / "sweep.json").write_text(json.dumps(
-        {"name": "duel", "axes": ["seed", "method"], "trials": listed,
+        {"name": path.name, "axes": ["seed", "method"], "trials": listed,
          "report": {"seed_axis": "seed", "line_axis": "method", "figure_axis": None}}))
     return path
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory):
+    path = tmp_path_factory.mktemp("sweep") / "duel"
+    return make_sweep(path, write_suites(path.parent))
 
 
 def test_every_finished_policy_plays_its_suites_with_the_new_limit_and_is_tabulated(
@@ -118,3 +124,13 @@ def test_bad_input_is_one_error_naming_the_file_or_option(sweep, tmp_path, capsy
     assert bad.read_text() == "something,else\n1,2\n"  # left as it was
     assert main(["sweep", "evaluate", str(tmp_path / "nothing"), "--max-steps", "512"]) == 2
     assert "sweep.json" in capsys.readouterr().err
+
+
+def test_a_run_without_suites_plays_its_training_scenario_against_its_opponent(tmp_path):
+    sweep = make_sweep(tmp_path / "marl", None, methods=("mappo",), seeds=(0,))
+    markdown = evaluate_sweep(sweep, LIMIT, episodes=2, out=tmp_path / "out").read_text()
+    (row,) = csv.DictReader((tmp_path / "out" / f"evaluate-{LIMIT}.csv").open())
+    assert (row["suite"], row["opponent"], row["episodes"]) == ("training", "random", "2")
+    assert row["scenario"] == scenario_file() and float(row["mean_length"]) <= LIMIT
+    assert md_section(markdown, "Win rate (the training scenarios and opponent")[1] == [
+        "all", f"{float(row['win_rate']):.2f}"]
