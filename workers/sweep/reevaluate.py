@@ -188,7 +188,7 @@ def _tables(body: dict, trials: dict, rows: list[dict[str, str]], max_steps: int
           f"{status}. Each finished trial's final policy (every seed's) played its own "
           f"evaluation suites again with episodes of {max_steps} steps; cells: mean over seeds "
           f"± the standard error, clipped to [0, 1]."
-          + (f" Mean episode length on the held-out suites: "
+          + (f" Mean episode length (tier suites aside): "
              f"{sum(mean_length) / len(mean_length):.1f} steps." if mean_length else ""), ""]
     groups = list(dict.fromkeys(g for g, _ in cells))
     if groups:
