@@ -52,14 +52,15 @@ COLUMNS = ("trial", "seed", "suite", "scenario", "opponent", "episodes", "win_ra
            "mean_length")
 
 
-def _policies(run_dir: Path) -> Iterator[tuple[int, TrainedPolicy]]:
-    """(seed, policy at its newest checkpoint) for each seed of a run folder."""
+def _policies(run_dir: Path, max_steps: int) -> Iterator[tuple[int, TrainedPolicy]]:
+    """(seed, policy at its newest checkpoint, playing `max_steps`-step episodes) for each
+    seed of a run folder."""
     config = read_run_config(run_dir)
     if config.seeds:
         for seed in config.seeds:
-            yield seed, load_policy(seed_dir(run_dir, seed))
+            yield seed, load_policy(seed_dir(run_dir, seed)).with_episode_limit(max_steps)
     else:
-        yield config.seed, load_policy(run_dir)
+        yield config.seed, load_policy(run_dir).with_episode_limit(max_steps)
 
 
 def _suites(config: TrainConfig) -> list[EvalSuite]:
@@ -117,13 +118,11 @@ def evaluate_sweep(sweep_dir: str | Path, max_steps: int, *, episodes: int | Non
     played = {(r["trial"], r["seed"], r["suite"]) for r in rows}
     key = jax.random.key(seed)
     todo = [(name, s, p, suite) for name in done
-            for s, p in _policies(folder.run_dir(name))
+            for s, p in _policies(folder.run_dir(name), max_steps)
             for suite in _suites(p.config)
             if (name, str(s), suite.name) not in played]
-    started = None
+    started = time.monotonic()
     for index, (name, policy_seed, policy, suite) in enumerate(todo):
-        started = started or time.monotonic()
-        policy = policy.with_episode_limit(max_steps)
         evaluator = Evaluator(policy.learner, suite, episodes=episodes,
                               profile=policy.config.env.profile)
         result = evaluator.evaluate(policy.params, key)
